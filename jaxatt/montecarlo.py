@@ -1,0 +1,273 @@
+"""Running observers: on a recorded log (:func:`run`), and fused with the simulator over many seeds
+(:func:`simulate`, :func:`monte_carlo`).
+
+The simulation of one run is a single ``lax.scan``: truth (exact omega(t), Magnus step), sensor samples and the
+observer step are computed together, and metrics are reduced on the fly (:mod:`jaxatt.metrics`), so a run of
+hundreds of thousands of steps holds only its state. Monte Carlo is ``vmap`` of that scan over PRNG keys, in
+chunks of runs; run k uses ``fold_in(PRNGKey(seed), k)`` whatever the chunk or batch size, so seed k alone and
+seed k inside a batch of 1000 give the same run. Decimated traces are kept only when asked for.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Dict, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import metrics as M
+from .integrate import Interval
+from .observers.base import ImuSample, Observer
+from .sim import imu
+
+__all__ = ["run", "simulate", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys"]
+
+
+def check_dt(dt) -> float:
+    dt = float(dt)
+    if not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
+    return dt
+
+
+def _check_samples(samples: ImuSample):
+    g = np.shape(samples.gyr)
+    if len(g) != 2 or g[1] != 3:
+        raise ValueError(f"samples.gyr must have shape (T, 3), got {g}")
+    if np.shape(samples.t) != (g[0],):
+        raise ValueError(f"samples.t must have shape (T,) = ({g[0]},), got {np.shape(samples.t)}")
+    for name in ("acc", "mag"):
+        v = getattr(samples, name)
+        if v is not None and np.shape(v) != g:
+            raise ValueError(f"samples.{name} must have the shape of gyr {g}, got {np.shape(v)}")
+    if g[0] < 2:
+        raise ValueError("a log needs at least two samples")
+
+
+def run(observer: Observer, params, samples: ImuSample, dt=None, *, hold: str = "zoh", validate: Optional[Callable] = None):
+    """Run ``observer`` over a log and return its stacked outputs at t_1 ... t_{T-1}.
+
+    Args:
+        samples: ImuSample of arrays, time-major (T,) / (T, 3); body-frame gyro (rad/s) and vector sensors.
+            NaN marks a missing reading (each observer documents what it does then).
+        dt: step (s); None takes dt_k = t_{k+1} - t_k from the timestamps.
+        hold: "zoh" (sample k held over [t_k, t_k+1]) or "linear" (interpolate to sample k+1).
+        validate: optional parameter check (e.g. ``batista_ges.check_params``), run on concrete params.
+    """
+    _check_samples(samples)
+    if hold not in ("zoh", "linear"):
+        raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}")
+    if validate is not None:
+        validate(params)
+    t = np.asarray(samples.t, float)
+    if dt is None:
+        dts = np.diff(t)
+        if not np.all(np.isfinite(dts)) or np.any(dts <= 0):
+            raise ValueError("timestamps must be finite and strictly increasing")
+    else:
+        dts = np.full(len(t) - 1, check_dt(dt))
+    return _run_jit(observer, hold)(params, samples, jnp.asarray(dts, jnp.asarray(samples.gyr).dtype))
+
+
+def _run_jit(observer: Observer, hold: str):
+    @jax.jit
+    def go(params, samples, dts):
+        first = jax.tree_util.tree_map(lambda a: a[0], samples)
+        state = observer.init(params, first)
+        cur = jax.tree_util.tree_map(lambda a: a[:-1], samples)
+        nxt = jax.tree_util.tree_map(lambda a: a[1:], samples)
+
+        def body(st, xs):
+            u0, u1, dt = xs
+            u = Interval(u0, u1) if hold == "linear" else u0
+            return observer.step(params, st, u, dt)
+
+        _, outs = jax.lax.scan(body, state, (cur, nxt, dts))
+        return outs
+
+    return go
+
+
+# ------------------------------------------------------------------------------------------------------
+# Simulation fused with the observer
+# ------------------------------------------------------------------------------------------------------
+ErrorsFn = Callable[[imu.Truth, Any], Dict[str, jax.Array]]
+
+
+def default_trace(truth: imu.Truth, out, errors: Dict[str, jax.Array], angle_deg) -> Dict[str, jax.Array]:
+    """Trace record: time, angle error (deg) and the norm of every named error."""
+    rec = {"t": truth.t, "angle_error_deg": angle_deg}
+    for k, v in errors.items():
+        rec[f"norm_{k}"] = jnp.sqrt(jnp.sum(v**2))
+    return rec
+
+
+def _cast(tree, dtype):
+    return jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
+
+
+def _make_run_fn(scenario, observer: Observer, params, *, n_steps: int, dt: float, errors_fn: ErrorsFn,
+                 window_start: float, hold: str, trace_every: int, trace_fn, obs_dtype, sim_dtype):
+    L = imu.NOISE_BLOCK
+    n_full, rem = divmod(n_steps, L)
+    if trace_every and L % trace_every:
+        raise ValueError(f"trace_every must divide {L}, got {trace_every}")
+
+    def one_run(key):
+        scn = _cast(scenario, sim_dtype)
+        p = _cast(params, obs_dtype)
+        r0 = scn.r0
+        truth0 = imu.truth_at(scn, r0, jnp.zeros((), sim_dtype))
+        s0 = imu.sample_sensors(scn, truth0, imu.initial_noise(key, sim_dtype), dt)
+        st0 = observer.init(p, _cast(s0, obs_dtype))
+        # Probe the error shapes once (traced, no cost at run time).
+        def probe():
+            _, out = observer.step(p, st0, _cast(s0, obs_dtype), dt)
+            return errors_fn(truth0, out)
+
+        err_shapes = {k: v.shape for k, v in jax.eval_shape(probe).items()}
+        acc0 = M.window_init(err_shapes, obs_dtype)
+
+        def step(carry, xs):
+            k, r, s_prev, st, acc = carry
+            noise = xs
+            t_k = k.astype(sim_dtype) * dt
+            t_next = (k + 1).astype(sim_dtype) * dt
+            r_next = imu.propagate_truth(scn, r, t_k, dt)
+            truth = imu.truth_at(scn, r_next, t_next)
+            s_next = _cast(imu.sample_sensors(scn, truth, noise, dt), obs_dtype)
+            u = Interval(s_prev, s_next) if hold == "linear" else s_prev
+            st, out = observer.step(p, st, u, jnp.asarray(dt, obs_dtype))
+            errors = errors_fn(truth, out)
+            angle = M.angle_error_deg(truth.r.astype(obs_dtype), out.r)
+            acc = M.window_update(acc, errors, angle, t_next >= window_start)
+            rec = trace_fn(truth, out, errors, angle) if trace_every else None
+            return (k + 1, r_next, s_next, st, acc), rec
+
+        def block(carry, j, length):
+            noise = imu.noise_block(key, j, sim_dtype)[:length]
+            carry, rec = jax.lax.scan(step, carry, noise)
+            if trace_every:
+                rec = jax.tree_util.tree_map(lambda a: a[trace_every - 1 :: trace_every], rec)
+            return carry, rec
+
+        carry = (jnp.zeros((), jnp.int32), r0, _cast(s0, obs_dtype), st0, acc0)
+        traces = []
+        if n_full:
+            carry, rec = jax.lax.scan(lambda c, j: block(c, j, L), carry, jnp.arange(n_full))
+            if trace_every:
+                traces.append(jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), rec))
+        if rem:
+            carry, rec = block(carry, n_full, rem)
+            if trace_every:
+                traces.append(rec)
+        summary = M.window_summary(carry[4])
+        trace = None
+        if trace_every:
+            trace = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, 0), *traces) if len(traces) > 1 else traces[0]
+        return summary, trace, carry[3]
+
+    return one_run
+
+
+def run_keys(seed: int, run_indices) -> jax.Array:
+    """PRNG key of each run: fold_in(PRNGKey(seed), k), independent of batching."""
+    base = jax.random.PRNGKey(seed)
+    return jax.vmap(lambda k: jax.random.fold_in(base, k))(jnp.asarray(run_indices, jnp.uint32))
+
+
+def _dtypes(dtype):
+    obs = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    sim = jnp.result_type(float)  # float64 when x64 is enabled: truth is always as precise as available
+    return obs, sim
+
+
+def simulate(scenario, observer: Observer, params, *, duration: float, dt: float, seed: int = 0, run_index: int = 0,
+             errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", trace_every: int = 1,
+             trace_fn=None, dtype=None):
+    """One simulated run; returns (summary dict, trace dict of arrays, final observer state).
+
+    ``trace_fn(truth, out, errors, angle_deg) -> dict`` picks what is recorded every ``trace_every`` steps
+    (default: time, angle error, error norms).
+    """
+    dt = check_dt(dt)
+    n_steps = int(round(duration / dt))
+    obs_dtype, sim_dtype = _dtypes(dtype)
+    fn = _make_run_fn(scenario, observer, params, n_steps=n_steps, dt=dt, errors_fn=errors_fn,
+                      window_start=window_start, hold=hold, trace_every=trace_every,
+                      trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
+    key = run_keys(seed, [run_index])[0]
+    summary, trace, state = jax.jit(fn)(key)
+    return ({k: float(v) for k, v in summary.items()},
+            jax.tree_util.tree_map(np.asarray, trace) if trace is not None else None, state)
+
+
+class MonteCarloResult(NamedTuple):
+    """Per-run summaries (name -> (n_runs,) numpy array), optional decimated traces (name -> (n_runs, n)),
+    the run indices done, wall time (s), and whether every requested run finished."""
+
+    per_run: Dict[str, np.ndarray]
+    traces: Optional[Dict[str, np.ndarray]]
+    run_indices: np.ndarray
+    wall_s: float
+    complete: bool
+
+
+def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: float, dt: float, seed: int = 0,
+                errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", chunk: int = 250,
+                trace_every: int = 0, trace_fn=None, dtype=None, validate: Optional[Callable] = None,
+                on_chunk: Optional[Callable[[MonteCarloResult], None]] = None) -> MonteCarloResult:
+    """``runs`` simulated runs, vmapped in chunks of ``chunk`` runs, metrics reduced on the fly.
+
+    After each chunk ``on_chunk(partial_result)`` is called (save, progress). On KeyboardInterrupt the runs
+    finished so far are returned with ``complete=False``: nothing computed is lost.
+    Memory per chunk: the state and accumulators of ``chunk`` runs, one noise block (chunk x 1000 x 6) and
+    the decimated traces; never the per-step trajectories.
+    """
+    dt = check_dt(dt)
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    if hold not in ("zoh", "linear"):
+        raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}")
+    if validate is not None:
+        validate(params)
+    n_steps = int(round(duration / dt))
+    if n_steps < 1:
+        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    obs_dtype, sim_dtype = _dtypes(dtype)
+    chunk = max(1, min(chunk, runs))
+    fn = _make_run_fn(scenario, observer, params, n_steps=n_steps, dt=dt, errors_fn=errors_fn,
+                      window_start=window_start, hold=hold, trace_every=trace_every,
+                      trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
+    batched = jax.jit(jax.vmap(lambda k: fn(k)[:2]))
+    per_run: Dict[str, list] = {}
+    traces: Dict[str, list] = {}
+    done: list = []
+    t0 = time.perf_counter()
+
+    def result(complete):
+        pr = {k: np.concatenate(v) for k, v in per_run.items()}
+        tr = {k: np.concatenate(v) for k, v in traces.items()} if traces else None
+        return MonteCarloResult(pr, tr, np.asarray(done, int), time.perf_counter() - t0, complete)
+
+    try:
+        for start in range(0, runs, chunk):
+            idx = np.arange(start, min(start + chunk, runs))
+            pad = chunk - len(idx)  # keep one compiled shape: pad the last chunk, drop the padding
+            keys = run_keys(seed, np.concatenate([idx, np.full(pad, idx[-1])]))
+            summ, trace = batched(keys)
+            for k, v in summ.items():
+                per_run.setdefault(k, []).append(np.asarray(v)[: len(idx)])
+            if trace is not None:
+                for k, v in trace.items():
+                    traces.setdefault(k, []).append(np.asarray(v)[: len(idx)])
+            done.extend(idx.tolist())
+            if on_chunk is not None:
+                on_chunk(result(len(done) == runs))
+    except KeyboardInterrupt:
+        if not done:
+            raise
+        return result(False)
+    return result(True)

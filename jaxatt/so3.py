@@ -1,0 +1,284 @@
+"""SO(3) algebra, written once for every observer.
+
+Conventions (used across jaxatt):
+
+* A rotation matrix ``R`` maps body/sensor coordinates to the reference frame: ``v_ref = R @ v_body``.
+* Quaternions are Hamilton, scalar first ``(w, x, y, z)``, shape ``(..., 4)``, and describe the same
+  body-to-reference rotation as ``R``.
+* ``skew(x) @ y == cross(x, y)`` (the papers' ``S(x)``).
+* Angles are in radians; only reports use degrees.
+
+Every function broadcasts over leading axes and is safe under ``jit``, ``vmap`` and ``grad``: branches at
+angle 0 and angle pi use the "double where" trick so that no NaN reaches a gradient.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = [
+    "skew", "vex", "mm", "mv", "exp", "log", "quat_to_matrix", "matrix_to_quat", "quat_multiply",
+    "quat_conjugate", "quat_canonical", "nearest_rotation", "polar_newton_schulz", "orthogonality_error",
+    "angle_error", "angle_of", "EulerZYX", "matrix_to_euler_zyx", "euler_zyx_to_matrix", "cross",
+    "to_xyzw", "from_xyzw", "det3",
+]
+
+
+# --------------------------------------------------------------------------------------------------------
+# Small helpers. Tiny 3x3 products written as broadcast multiply + sum: under vmap, XLA fuses them into one
+# elementwise loop, which is much faster on CPU than a batch of 3x3 dot calls.
+# --------------------------------------------------------------------------------------------------------
+def mm(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Matrix product of (..., n, k) and (..., k, m) arrays as a fused broadcast-sum (for tiny matrices)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+def mv(a: jax.Array, v: jax.Array) -> jax.Array:
+    """Matrix-vector product of (..., n, k) and (..., k) arrays as a fused broadcast-sum."""
+    return jnp.sum(a * v[..., None, :], axis=-1)
+
+
+def cross(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Cross product a x b over the last axis (explicit formula; fuses well)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def skew(x: jax.Array) -> jax.Array:
+    """Skew-symmetric matrix S(x), shape (..., 3, 3), with S(x) y = x x y."""
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    z = jnp.zeros_like(x0)
+    return jnp.stack(
+        [jnp.stack([z, -x2, x1], -1), jnp.stack([x2, z, -x0], -1), jnp.stack([-x1, x0, z], -1)], axis=-2
+    )
+
+
+def vex(m: jax.Array) -> jax.Array:
+    """Inverse of :func:`skew` applied to the skew part of ``m``: vex((M - M^T)/2), shape (..., 3)."""
+    return 0.5 * jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
+    )
+
+
+def _safe_norm(x: jax.Array, eps: float) -> tuple[jax.Array, jax.Array]:
+    """(norm, small) with a gradient-safe norm: where ``small`` the returned norm is 1 (caller branches)."""
+    sq = jnp.sum(x * x, axis=-1)
+    small = sq < eps * eps
+    return jnp.sqrt(jnp.where(small, 1.0, sq)), small
+
+
+def _tiny(dtype) -> float:
+    return float(jnp.finfo(dtype).eps) ** 0.5
+
+
+# --------------------------------------------------------------------------------------------------------
+# Exponential and logarithm
+# --------------------------------------------------------------------------------------------------------
+def exp(phi: jax.Array) -> jax.Array:
+    """Rotation matrix exp(S(phi)) for a rotation vector ``phi`` (rad, shape (..., 3)), Rodrigues' formula."""
+    phi = jnp.asarray(phi)
+    th2 = jnp.sum(phi * phi, axis=-1)
+    small = th2 < _tiny(phi.dtype) ** 2 * 100
+    th2_safe = jnp.where(small, 1.0, th2)
+    th = jnp.sqrt(th2_safe)
+    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / th2_safe)
+    s = skew(phi)
+    eye = jnp.eye(3, dtype=phi.dtype)
+    return eye + a[..., None, None] * s + b[..., None, None] * mm(s, s)
+
+
+def log(r: jax.Array) -> jax.Array:
+    """Rotation vector (rad, shape (..., 3)) of a rotation matrix, angle in [0, pi]; exact near 0 and pi."""
+    return 2.0 * _quat_log_half(quat_canonical(matrix_to_quat(r)))
+
+
+def _quat_log_half(q: jax.Array) -> jax.Array:
+    """Half rotation vector of a unit quaternion with w >= 0: axis * angle / 2."""
+    w, v = q[..., 0], q[..., 1:]
+    n, small = _safe_norm(v, _tiny(q.dtype))
+    # atan2(n, w)/n with the Taylor series 1/w (1 - n^2/(3 w^2)) near n = 0 (w ~ 1 there).
+    ratio = jnp.where(small, (1.0 - jnp.sum(v * v, -1) / 3.0) / jnp.where(small, w, 1.0), jnp.arctan2(n, w) / n)
+    return ratio[..., None] * v
+
+
+# --------------------------------------------------------------------------------------------------------
+# Quaternions (w, x, y, z), Hamilton product
+# --------------------------------------------------------------------------------------------------------
+def quat_to_matrix(q: jax.Array) -> jax.Array:
+    """Rotation matrix of a quaternion (w, x, y, z); the quaternion is normalised first."""
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def matrix_to_quat(r: jax.Array) -> jax.Array:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method; sign is arbitrary)."""
+    m00, m01, m02 = r[..., 0, 0], r[..., 0, 1], r[..., 0, 2]
+    m10, m11, m12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
+    m20, m21, m22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
+    tr = m00 + m11 + m22
+    # Four candidate formulas; each is well-conditioned when its pivot is the largest.
+    piv = jnp.stack([tr, m00, m11, m22], axis=-1)
+    k = jnp.argmax(piv, axis=-1)
+    s0 = 1.0 + tr
+    s1 = 1.0 + m00 - m11 - m22
+    s2 = 1.0 - m00 + m11 - m22
+    s3 = 1.0 - m00 - m11 + m22
+    cand = jnp.stack(
+        [
+            jnp.stack([s0, m21 - m12, m02 - m20, m10 - m01], -1),
+            jnp.stack([m21 - m12, s1, m01 + m10, m02 + m20], -1),
+            jnp.stack([m02 - m20, m01 + m10, s2, m12 + m21], -1),
+            jnp.stack([m10 - m01, m02 + m20, m12 + m21, s3], -1),
+        ],
+        axis=-2,
+    )  # (..., 4 candidates, 4)
+    s = jnp.stack([s0, s1, s2, s3], axis=-1)
+    s_safe = jnp.where(s > 0.1, s, 1.0)  # the chosen pivot always has s >= 1
+    scaled = cand * (0.5 / jnp.sqrt(s_safe))[..., None]
+    return jnp.take_along_axis(scaled, k[..., None, None], axis=-2)[..., 0, :]
+
+
+def quat_multiply(p: jax.Array, q: jax.Array) -> jax.Array:
+    """Hamilton product p * q of (w, x, y, z) quaternions (rotation p after... i.e. R(p) @ R(q))."""
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - jnp.sum(pv * qv, -1, keepdims=True)
+    v = pw * qv + qw * pv + cross(pv, qv)
+    return jnp.concatenate([w, v], axis=-1)
+
+
+def quat_conjugate(q: jax.Array) -> jax.Array:
+    """Conjugate (inverse for unit quaternions) of a (w, x, y, z) quaternion."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_canonical(q: jax.Array) -> jax.Array:
+    """The representative of +-q with w >= 0."""
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def to_xyzw(q: jax.Array) -> jax.Array:
+    """(w, x, y, z) -> (x, y, z, w), the order of scipy.spatial.transform."""
+    return jnp.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def from_xyzw(q: jax.Array) -> jax.Array:
+    """(x, y, z, w) -> (w, x, y, z)."""
+    return jnp.concatenate([q[..., 3:], q[..., :3]], axis=-1)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Projection onto SO(3)
+# --------------------------------------------------------------------------------------------------------
+@jax.custom_jvp
+def nearest_rotation(m: jax.Array) -> jax.Array:
+    """The rotation closest to ``m`` in the Frobenius norm: U diag(1, 1, det(U V^T)) V^T from the SVD.
+
+    Works for any 3x3 matrix (also det(m) < 0, where the smallest singular direction is flipped). The
+    derivative is the polar-decomposition derivative, finite at rotations (where the SVD's own derivative
+    divides by zero between equal singular values).
+    """
+    u, _, vt = jnp.linalg.svd(m)
+    d = jnp.sign(det3(mm(u, vt)))
+    u = u.at[..., :, 2].multiply(d[..., None])
+    return mm(u, vt)
+
+
+@nearest_rotation.defjvp
+def _nearest_rotation_jvp(primals, tangents):
+    (m,), (dm,) = primals, tangents
+    r = nearest_rotation(m)
+    # m = r h with h symmetric; d r = r S(w) where (tr(h) I - h) w = vex(r^T dm - dm^T r) * 2 / 2.
+    h = mm(jnp.swapaxes(r, -1, -2), m)
+    h = 0.5 * (h + jnp.swapaxes(h, -1, -2))
+    a = jnp.trace(h, axis1=-2, axis2=-1)[..., None, None] * jnp.eye(3, dtype=m.dtype) - h
+    rhs = 2.0 * vex(mm(jnp.swapaxes(r, -1, -2), dm))
+    w = jnp.linalg.solve(a, rhs[..., None])[..., 0]
+    return r, mm(r, skew(w))
+
+
+def polar_newton_schulz(m: jax.Array, iterations: int = 6) -> jax.Array:
+    """Orthogonal polar factor of ``m`` by Newton-Schulz iterations X <- X (3 I - X^T X) / 2.
+
+    Converges (quadratically) when ||m^T m - I||_2 < 1, which is exactly the region in which Theorem 3 of
+    batista2019-ges projects (||R^T R - I|| <= eps < 1). Equals :func:`nearest_rotation` there when
+    det(m) > 0. Only matrix products: cheap, vectorises, differentiable. Six iterations reach float64
+    rounding for ||m^T m - I||_F <= 0.5.
+    """
+    eye3 = 3.0 * jnp.eye(3, dtype=m.dtype)
+    x = m
+    for _ in range(iterations):
+        x = 0.5 * mm(x, eye3 - mm(jnp.swapaxes(x, -1, -2), x))
+    return x
+
+
+def det3(r: jax.Array) -> jax.Array:
+    """Determinant of (..., 3, 3) matrices as r0 . (r1 x r2) (fuses; no LU call)."""
+    return jnp.sum(r[..., 0, :] * cross(r[..., 1, :], r[..., 2, :]), axis=-1)
+
+
+def orthogonality_error(r: jax.Array) -> jax.Array:
+    """||R^T R - I||_F, shape (...)."""
+    e = mm(jnp.swapaxes(r, -1, -2), r) - jnp.eye(3, dtype=r.dtype)
+    return jnp.sqrt(jnp.sum(e * e, axis=(-2, -1)))
+
+
+# --------------------------------------------------------------------------------------------------------
+# Errors and Euler angles
+# --------------------------------------------------------------------------------------------------------
+def angle_of(e: jax.Array) -> jax.Array:
+    """Rotation angle (rad, in [0, pi]) of a rotation matrix ``e`` (eq. 23 of batista2019-ges).
+
+    atan2(||vex(E)||, (tr E - 1)/2): accurate at small angles (unlike arccos) and gradient-safe at 0.
+    """
+    s, small = _safe_norm(vex(e), _tiny(e.dtype) ** 2)
+    c = 0.5 * (jnp.trace(e, axis1=-2, axis2=-1) - 1.0)
+    return jnp.where(small, jnp.where(c < 0, jnp.pi, 0.0), jnp.arctan2(s, c))
+
+
+def angle_error(r_true: jax.Array, r_est: jax.Array) -> jax.Array:
+    """Angle (rad) of the rotation error R_true^T R_est, shape (...)."""
+    return angle_of(mm(jnp.swapaxes(r_true, -1, -2), r_est))
+
+
+class EulerZYX(NamedTuple):
+    """Roll, pitch, yaw (rad) of the ZYX convention: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+
+    roll: jax.Array
+    pitch: jax.Array
+    yaw: jax.Array
+
+
+def matrix_to_euler_zyx(r: jax.Array) -> EulerZYX:
+    """ZYX Euler angles (rad) of a body-to-reference rotation matrix; pitch in [-pi/2, pi/2]."""
+    roll = jnp.arctan2(r[..., 2, 1], r[..., 2, 2])
+    horiz, _ = _safe_norm(r[..., 2, 1:], 0.0)
+    pitch = jnp.arctan2(-r[..., 2, 0], horiz)
+    yaw = jnp.arctan2(r[..., 1, 0], r[..., 0, 0])
+    return EulerZYX(roll, pitch, yaw)
+
+
+def euler_zyx_to_matrix(roll: jax.Array, pitch: jax.Array, yaw: jax.Array) -> jax.Array:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (angles in rad), body-to-reference."""
+    roll, pitch, yaw = jnp.broadcast_arrays(jnp.asarray(roll), jnp.asarray(pitch), jnp.asarray(yaw))
+    cr, sr, cp, sp, cy, sy = jnp.cos(roll), jnp.sin(roll), jnp.cos(pitch), jnp.sin(pitch), jnp.cos(yaw), jnp.sin(yaw)
+    return jnp.stack(
+        [
+            jnp.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            jnp.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            jnp.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        axis=-2,
+    )
