@@ -29,7 +29,7 @@ Readings chosen where the paper is open (see ../shared/papers/NOTES.md and docs)
 * Theorem 3: eps and the norm are not given; we use the Frobenius norm and eps = 0.5, and project only when
   det(R^) > 0 too (a reflection cannot be projected continuously; near convergence det > 0 always, so the
   theorem's conclusions are unchanged). The propagation law uses omega(t), which is not measured; we use its
-  implementable reading gyr - omega_E^. The projection is Newton-Schulz, exact to rounding inside that region.
+  implementable reading gyr - omega_E^. The projection is Newton's polar iteration, exact to rounding inside that region.
 * The Table-1 schedule is evaluated at the start of each step (switch times are multiples of dt).
 
 Missing samples (NaN in a log): a missing vector sample switches the corrections off for that step (x1^
@@ -309,7 +309,7 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         we1 = earth_rate_estimate(s.coef, x1, x2)
         r_prop = so3.mm(s.r_f, so3.exp(dt * (gyr_mid - 0.5 * (we0 + we1))))
         close = (so3.orthogonality_error(r_hat) <= p.epsilon) & (so3.det3(r_hat) > 0)
-        r_proj = so3.polar_newton_schulz(jnp.where(close, r_hat, jnp.eye(3, dtype=r_hat.dtype)))
+        r_proj = so3.polar_newton(jnp.where(close, r_hat, jnp.eye(3, dtype=r_hat.dtype)))
         r_f = jnp.where(close, r_proj, r_prop)
         t1 = t0 + dt
         new = State(t1, x1, x2, r_hat, r_f, gyr_new, s.coef)
