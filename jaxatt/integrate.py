@@ -65,9 +65,10 @@ def lie_rk4_step(r: jax.Array, omega_fn: Callable[[jax.Array, float], jax.Array]
     """
 
     def dexpinv(phi, w):
-        # dexp^{-1}_phi(w) ~= w - 1/2 phi x w + 1/12 phi x (phi x w)  (enough for order 4)
+        # Right-trivialised form (R = R0 exp(S(phi)), phi' = dexp^{-1}_{-phi}(omega)):
+        # dexp^{-1}_{-phi}(w) ~= w + 1/2 phi x w + 1/12 phi x (phi x w)  (enough for order 4)
         pw = so3.cross(phi, w)
-        return w - 0.5 * pw + so3.cross(phi, pw) / 12.0
+        return w + 0.5 * pw + so3.cross(phi, pw) / 12.0
 
     k1 = omega_fn(r, 0.0)
     p = 0.5 * dt * k1

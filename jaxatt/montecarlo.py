@@ -22,7 +22,7 @@ from .integrate import Interval
 from .observers.base import ImuSample, Observer
 from .sim import imu
 
-__all__ = ["run", "simulate", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys"]
+__all__ = ["run", "simulate", "simulate_log", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys"]
 
 
 def check_dt(dt) -> float:
@@ -219,6 +219,38 @@ def simulate(scenario, observer: Observer, params, *, duration: float, dt: float
     return ({k: float(first(v)) for k, v in summary.items()},
             jax.tree_util.tree_map(first, trace) if trace is not None else None,
             jax.tree_util.tree_map(lambda a: a[0], state))
+
+
+def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_index: int = 0):
+    """A simulated log (samples at t_0 ... t_N) and its truth, with the same noise stream as :func:`simulate`.
+
+    Returns (ImuSample of (N+1,)/(N+1, 3) arrays, Truth of stacked arrays). Holds the whole trajectory:
+    meant for short runs, tests and for feeding :func:`run`.
+    """
+    dt = check_dt(dt)
+    n_steps = int(round(duration / dt))
+    sim_dtype = jnp.result_type(float)
+    key = run_keys(seed, [run_index])[0]
+    n_blocks = -(-n_steps // imu.NOISE_BLOCK)
+
+    @jax.jit
+    def go(scn):
+        truth0 = imu.truth_at(scn, scn.r0, jnp.zeros((), sim_dtype))
+        s0 = imu.sample_sensors(scn, truth0, imu.initial_noise(key, sim_dtype), dt)
+        noise = jax.vmap(lambda j: imu.noise_block(key, j, sim_dtype))(jnp.arange(n_blocks))
+        noise = noise.reshape(-1, imu.N_CHANNELS)[:n_steps]
+
+        def body(carry, xs):
+            r, k = carry
+            r_next = imu.propagate_truth(scn, r, k.astype(sim_dtype) * dt, dt)
+            truth = imu.truth_at(scn, r_next, (k + 1).astype(sim_dtype) * dt)
+            return (r_next, k + 1), (truth, imu.sample_sensors(scn, truth, xs, dt))
+
+        _, (truths, samples) = jax.lax.scan(body, (scn.r0, jnp.zeros((), jnp.int32)), noise)
+        cat = lambda a, b: jnp.concatenate([a[None], b], 0)  # noqa: E731
+        return (jax.tree_util.tree_map(cat, s0, samples), jax.tree_util.tree_map(cat, truth0, truths))
+
+    return go(_cast(scenario, sim_dtype))
 
 
 class MonteCarloResult(NamedTuple):

@@ -233,7 +233,7 @@ def check_params(p: Params) -> None:
 # Dynamics
 # ------------------------------------------------------------------------------------------------------
 def _schedule(p: Params, t):
-    i = jnp.sum(t >= p.switch_times)
+    i = jnp.sum(jnp.asarray(t)[..., None] >= p.switch_times, axis=-1)
     return p.alpha1[i], p.alpha2[i]
 
 
