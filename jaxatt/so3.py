@@ -9,7 +9,8 @@ Conventions (used across jaxatt):
 * Angles are in radians; only reports use degrees.
 
 Every function broadcasts over leading axes and is safe under ``jit``, ``vmap`` and ``grad``: branches at
-angle 0 and angle pi use the "double where" trick so that no NaN reaches a gradient.
+angle 0 and angle pi use the "double where" trick so that no NaN reaches a gradient (Euler angles excepted at
+gimbal lock, where they are not defined).
 """
 from __future__ import annotations
 
@@ -267,9 +268,12 @@ class EulerZYX(NamedTuple):
 
 
 def matrix_to_euler_zyx(r: jax.Array) -> EulerZYX:
-    """ZYX Euler angles (rad) of a body-to-reference rotation matrix; pitch in [-pi/2, pi/2]."""
+    """ZYX Euler angles (rad) of a body-to-reference rotation matrix; pitch in [-pi/2, pi/2].
+
+    At pitch = +-90 deg (gimbal lock) roll and yaw are not defined and neither is their gradient.
+    """
     roll = jnp.arctan2(r[..., 2, 1], r[..., 2, 2])
-    horiz, _ = _safe_norm(r[..., 2, 1:], 0.0)
+    horiz = jnp.hypot(r[..., 2, 1], r[..., 2, 2])
     pitch = jnp.arctan2(-r[..., 2, 0], horiz)
     yaw = jnp.arctan2(r[..., 1, 0], r[..., 0, 0])
     return EulerZYX(roll, pitch, yaw)
