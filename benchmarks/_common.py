@@ -98,11 +98,14 @@ def git_info() -> Dict[str, Any]:
     """Commit and whether the working tree differs from it (results of uncommitted code say so)."""
     def git(*args):
         try:
-            return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
+            return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10).stdout.rstrip()
         except Exception:  # noqa: BLE001
             return ""
-    commit = git("rev-parse", "HEAD")
-    return {"commit": commit or None, "dirty": bool(git("status", "--porcelain", "--untracked-files=no")) if commit else None}
+    commit = git("rev-parse", "HEAD").strip()
+    if not commit:
+        return {"commit": None, "dirty": None, "modified": []}
+    modified = [line[3:] for line in git("status", "--porcelain", "--untracked-files=no").splitlines() if line]
+    return {"commit": commit, "dirty": bool(modified), "modified": modified}
 
 
 def jax_info() -> Dict[str, Any]:

@@ -44,6 +44,14 @@ def steps_for(batch: int, quick: bool) -> int:
     return max(lo, -(-total // batch))
 
 
+def _load():
+    """1-minute load average (other processes on the machine distort timings; compare with cpu_count)."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return None
+
+
 # ----------------------------------------------------------------------------------------------------------
 # JAX measurements
 # ----------------------------------------------------------------------------------------------------------
@@ -83,7 +91,7 @@ def measure_fused(batch: int, n_steps: int, dtype: str, *, repeats: int, min_tim
         "wall_s": tm["best_s"], "wall_median_s": tm["median_s"], "calls": len(tm["times_s"]),
         "run_steps_per_s": batch * n_steps / tm["best_s"],
         "us_per_run_step": 1e6 * tm["best_s"] / (batch * n_steps),
-        "finite": bool(np.all(np.isfinite(final_angle))),
+        "finite": bool(np.all(np.isfinite(final_angle))), "loadavg_1m": _load(),
     }
 
 
@@ -125,7 +133,8 @@ def measure_observer_only(n_steps: int, dtype: str, *, repeats: int, min_time: f
     tm = C.time_it(lambda: compiled(p, samples, dts), repeats=repeats, min_time=min_time, sync=jax.block_until_ready)
     return {"kind": "observer_only", "dtype": dtype, "batch": 1, "steps": n_steps, "compile_s": compile_s,
             "wall_s": tm["best_s"], "wall_median_s": tm["median_s"], "calls": len(tm["times_s"]),
-            "run_steps_per_s": n_steps / tm["best_s"], "us_per_run_step": 1e6 * tm["best_s"] / n_steps}
+            "run_steps_per_s": n_steps / tm["best_s"], "us_per_run_step": 1e6 * tm["best_s"] / n_steps,
+            "loadavg_1m": _load()}
 
 
 def measure_api_recompile(runs: int = 10, duration: float = 20.0):
@@ -177,9 +186,9 @@ def measure_numpy(n_steps: int):
     obs_s = time.perf_counter() - t0
     return [
         {"kind": "numpy_fused", "dtype": "float64", "batch": 1, "steps": n_steps, "wall_s": fused_s,
-         "run_steps_per_s": n_steps / fused_s, "us_per_run_step": 1e6 * fused_s / n_steps},
+         "run_steps_per_s": n_steps / fused_s, "us_per_run_step": 1e6 * fused_s / n_steps, "loadavg_1m": _load()},
         {"kind": "numpy_observer_only", "dtype": "float64", "batch": 1, "steps": n_steps, "wall_s": obs_s,
-         "run_steps_per_s": n_steps / obs_s, "us_per_run_step": 1e6 * obs_s / n_steps},
+         "run_steps_per_s": n_steps / obs_s, "us_per_run_step": 1e6 * obs_s / n_steps, "loadavg_1m": _load()},
     ]
 
 
@@ -290,7 +299,7 @@ def main(argv=None) -> int:
 
     for dtype in args.dtypes:
         if dtype == "float32-x64off":
-            print(f"fused float32 with x64 disabled (subprocess) ...", flush=True)
+            print("fused float32 with x64 disabled (subprocess) ...", flush=True)
             rows += _subprocess(["--_worker", "x64off"] + common)["rows"]
             continue
         for b in args.batches:
@@ -323,7 +332,7 @@ def main(argv=None) -> int:
                             args.full_dtype])["row"]
 
     cols = ["kind", "dtype", "batch", "steps", "compile_s", "wall_s", "run_steps_per_s", "us_per_run_step",
-            "speedup_vs_numpy"]
+            "speedup_vs_numpy", "loadavg_1m"]
     C.print_table(rows, cols, title="Run-steps per second (truth + sensors + observer unless 'observer_only')")
     C.print_table([api], ["kind", "dtype", "batch", "steps", "first_call_s", "second_call_s"],
                   title="monte_carlo called twice with the same objects (wall incl. compile)")

@@ -124,21 +124,20 @@ def test_fast_gain_both_switches_and_schedule():
 
 
 def test_missing_samples_timestamps_and_zero_x1():
-    """NaN gyro / vector samples, jittered timestamps (dt from the log), x1^(0) = 0 (the paper's literal
-    set-up) and the aggressive trajectory."""
+    """NaN gyro / vector samples, jittered timestamps (dt from the log), the aggressive trajectory, and a NaN
+    first vector sample, so x1^(0) falls back to params.x1_0 = 0 (the paper's literal set-up)."""
     cfg = exp.Config()
     p = exp.params(cfg, dtype=jnp.float64)
-    t, gyr, mag, _ = _scenario_samples(cfg, 20.0, seed=4, rate_amp=(100.0, 20.0, -40.0))
+    t, gyr, mag, _ = _scenario_samples(cfg, 10.0, seed=4, rate_amp=(100.0, 20.0, -40.0))
     rng = np.random.default_rng(5)
     t = t + rng.uniform(-2e-4, 2e-4, t.shape) * (np.arange(len(t)) > 0)
     gyr, mag = gyr.copy(), mag.copy()
-    gyr[rng.choice(len(t), 40, replace=False), rng.integers(0, 3)] = np.nan
-    mag[rng.choice(len(t), 40, replace=False), rng.integers(0, 3)] = np.nan
-    mag[0] = np.nan  # x1^(0) falls back to params.x1_0 under "first_sample"
+    gyr[rng.choice(len(t), 30, replace=False), rng.integers(0, 3)] = np.nan
+    mag[rng.choice(len(t), 30, replace=False), rng.integers(0, 3)] = np.nan
+    mag[0] = np.nan
     out_j, out_n = _run_both(cfg, p, t, gyr, mag, dt=None)
     _compare(out_j, out_n)
-    out_j, out_n = _run_both(cfg, p, t, gyr, mag, dt=None, x1_init="params")
-    _compare(out_j, out_n)
+    assert np.all(np.isfinite(out_n["r"]))
 
 
 def test_fused_simulation_matches_numpy_loop():
