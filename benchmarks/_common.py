@@ -39,10 +39,9 @@ def _read(path: str) -> str:
 
 
 def _cpu_model() -> Optional[str]:
-    for line in _read("/proc/cpuinfo").splitlines():
-        if line.lower().startswith(("model name", "hardware", "cpu model")):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or None
+    from jaxatt.report import _cpu_model as cpu_model  # written once, in the package
+
+    return cpu_model()
 
 
 def _mem_total_gib() -> Optional[float]:

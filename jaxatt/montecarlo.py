@@ -9,6 +9,7 @@ seed k inside a batch of 1000 give the same run. Decimated traces are kept only 
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any, Callable, Dict, NamedTuple, Optional
@@ -71,7 +72,9 @@ def run(observer: Observer, params, samples: ImuSample, dt=None, *, hold: str = 
     return _run_jit(observer, hold)(params, samples, jnp.asarray(dts, jnp.asarray(samples.gyr).dtype))
 
 
+@functools.lru_cache(maxsize=32)
 def _run_jit(observer: Observer, hold: str):
+    """Jitted log runner, cached per (observer, hold) so repeated calls with new params do not recompile."""
     @jax.jit
     def go(params, samples, dts):
         first = jax.tree_util.tree_map(lambda a: a[0], samples)
