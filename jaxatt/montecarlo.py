@@ -113,7 +113,26 @@ def _cast(tree, dtype):
 
 def _make_batch_fn(scenario, observer: Observer, params, *, n_steps: int, dt: float, errors_fn: ErrorsFn,
                    window_start: float, hold: str, trace_every: int, trace_fn, obs_dtype, sim_dtype):
-    """Build ``batch_run(keys) -> (summary, trace, final_state)`` for a batch of run keys.
+    """Build ``batch_run(keys) -> (summary, trace, final_state)`` for a batch of run keys (scenario and
+    params closed over; :func:`_batch_fn_jit` is the cached, jitted form that takes them as arguments)."""
+    fn = _batch_fn(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=window_start, hold=hold,
+                   trace_every=trace_every, trace_fn=trace_fn, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
+    return lambda keys: fn(scenario, params, keys)
+
+
+@functools.lru_cache(maxsize=64)
+def _batch_fn_jit(observer: Observer, **static):
+    """``jit(batch_run(scenario, params, keys))``, cached on the observer and every static setting, so calls
+    with new params, a new scenario of the same structure, or new seeds do not compile again."""
+    return jax.jit(_batch_fn(observer, **static))
+
+
+def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsFn, window_start: float, hold: str,
+              trace_every: int, trace_fn, obs_dtype, sim_dtype):
+    """``batch_run(scenario, params, keys) -> (summary, trace, final_state)`` for a batch of run keys.
+
+    The scenario provides the simulator interface ``n_channels``, ``truth_at(r, t)``, ``propagate(r, t, dt)``
+    and ``sample(truth, noise, dt)`` (see :class:`jaxatt.sim.imu.ImuScenario`); its truth has ``t`` and ``r``.
 
     Layout: the scan runs outside ``vmap`` and every per-run array carries the batch on its LAST axis
     (``vmap(..., in_axes=-1, out_axes=-1)`` inside the step). Vectors are then (3, B): each component is a
@@ -123,40 +142,41 @@ def _make_batch_fn(scenario, observer: Observer, params, *, n_steps: int, dt: fl
     n_full, rem = divmod(n_steps, L)
     if trace_every and L % trace_every:
         raise ValueError(f"trace_every must divide {L}, got {trace_every}")
-    scn = _cast(scenario, sim_dtype)
-    p = _cast(params, obs_dtype)
     dt_obs = np.asarray(dt, obs_dtype)
     bl = dict(in_axes=-1, out_axes=-1)
 
-    def init_one(key):
-        truth0 = imu.truth_at(scn, scn.r0, jnp.zeros((), sim_dtype))
-        s0 = _cast(imu.sample_sensors(scn, truth0, imu.initial_noise(key, sim_dtype), dt), obs_dtype)
-        st0 = observer.init(p, s0)
+    def batch_run(scenario, params, keys):
+        scn = _cast(scenario, sim_dtype)
+        p = _cast(params, obs_dtype)
+        nch = scn.n_channels
 
-        def probe():
-            _, out = observer.step(p, st0, s0, dt_obs)
-            return errors_fn(truth0, out)
+        def init_one(key):
+            truth0 = scn.truth_at(scn.r0, jnp.zeros((), sim_dtype))
+            s0 = _cast(scn.sample(truth0, imu.initial_noise(key, sim_dtype, nch), dt), obs_dtype)
+            st0 = observer.init(p, s0)
 
-        err_shapes = {k: v.shape for k, v in jax.eval_shape(probe).items()}
-        return scn.r0, s0, st0, M.window_init(err_shapes, obs_dtype)
+            def probe():
+                _, out = observer.step(p, st0, s0, dt_obs)
+                return errors_fn(truth0, out)
 
-    def step_one(k, r, s_prev, st, acc, noise):
-        t_k = k.astype(sim_dtype) * dt
-        t_next = (k + 1).astype(sim_dtype) * dt
-        r_next = imu.propagate_truth(scn, r, t_k, dt)
-        truth = imu.truth_at(scn, r_next, t_next)
-        s_next = _cast(imu.sample_sensors(scn, truth, noise, dt), obs_dtype)
-        u = Interval(s_prev, s_next) if hold == "linear" else s_prev
-        st, out = observer.step(p, st, u, dt_obs)
-        errors = errors_fn(truth, out)
-        angle = M.angle_error_deg(truth.r.astype(obs_dtype), out.r)
-        acc = M.window_update(acc, errors, angle, t_next >= window_start)
-        rec = trace_fn(truth, out, errors, angle) if trace_every else None
-        return r_next, s_next, st, acc, rec
+            err_shapes = {k: v.shape for k, v in jax.eval_shape(probe).items()}
+            return scn.r0, s0, st0, M.window_init(err_shapes, obs_dtype)
 
-    step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1), out_axes=-1)
+        def step_one(k, r, s_prev, st, acc, noise):
+            t_k = k.astype(sim_dtype) * dt
+            t_next = (k + 1).astype(sim_dtype) * dt
+            r_next = scn.propagate(r, t_k, dt)
+            truth = scn.truth_at(r_next, t_next)
+            s_next = _cast(scn.sample(truth, noise, dt), obs_dtype)
+            u = Interval(s_prev, s_next) if hold == "linear" else s_prev
+            st, out = observer.step(p, st, u, dt_obs)
+            errors = errors_fn(truth, out)
+            angle = M.angle_error_deg(truth.r.astype(obs_dtype), out.r)
+            acc = M.window_update(acc, errors, angle, t_next >= window_start)
+            rec = trace_fn(truth, out, errors, angle) if trace_every else None
+            return r_next, s_next, st, acc, rec
 
-    def batch_run(keys):
+        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1), out_axes=-1)
         carry = (jnp.zeros((), jnp.int32),) + jax.vmap(init_one, out_axes=-1)(keys)  # keys: (B, 2)
 
         def step(carry, noise):
@@ -165,7 +185,7 @@ def _make_batch_fn(scenario, observer: Observer, params, *, n_steps: int, dt: fl
             return (k + 1, r, s, st, acc), rec
 
         def block(carry, j, length):
-            noise = jax.vmap(lambda key: imu.noise_block(key, j, sim_dtype)[:length], out_axes=-1)(keys)
+            noise = jax.vmap(lambda key: imu.noise_block(key, j, sim_dtype, nch)[:length], out_axes=-1)(keys)
             carry, rec = jax.lax.scan(step, carry, noise)  # rec: (length, ..., B)
             if trace_every:
                 rec = jax.tree_util.tree_map(lambda a: a[trace_every - 1 :: trace_every], rec)
@@ -214,10 +234,10 @@ def simulate(scenario, observer: Observer, params, *, duration: float, dt: float
     dt = check_dt(dt)
     n_steps = int(round(duration / dt))
     obs_dtype, sim_dtype = _dtypes(dtype)
-    fn = _make_batch_fn(scenario, observer, params, n_steps=n_steps, dt=dt, errors_fn=errors_fn,
-                        window_start=window_start, hold=hold, trace_every=trace_every,
-                        trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
-    summary, trace, state = jax.jit(fn)(run_keys(seed, [run_index]))
+    fn = _batch_fn_jit(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
+                       hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
+                       sim_dtype=sim_dtype)
+    summary, trace, state = fn(scenario, params, run_keys(seed, [run_index]))
     first = lambda a: np.asarray(a)[0]  # noqa: E731
     return ({k: float(first(v)) for k, v in summary.items()},
             jax.tree_util.tree_map(first, trace) if trace is not None else None,
@@ -238,16 +258,17 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
 
     @jax.jit
     def go(scn):
-        truth0 = imu.truth_at(scn, scn.r0, jnp.zeros((), sim_dtype))
-        s0 = imu.sample_sensors(scn, truth0, imu.initial_noise(key, sim_dtype), dt)
-        noise = jax.vmap(lambda j: imu.noise_block(key, j, sim_dtype))(jnp.arange(n_blocks))
-        noise = noise.reshape(-1, imu.N_CHANNELS)[:n_steps]
+        nch = scn.n_channels
+        truth0 = scn.truth_at(scn.r0, jnp.zeros((), sim_dtype))
+        s0 = scn.sample(truth0, imu.initial_noise(key, sim_dtype, nch), dt)
+        noise = jax.vmap(lambda j: imu.noise_block(key, j, sim_dtype, nch))(jnp.arange(n_blocks))
+        noise = noise.reshape(-1, nch)[:n_steps]
 
         def body(carry, xs):
             r, k = carry
-            r_next = imu.propagate_truth(scn, r, k.astype(sim_dtype) * dt, dt)
-            truth = imu.truth_at(scn, r_next, (k + 1).astype(sim_dtype) * dt)
-            return (r_next, k + 1), (truth, imu.sample_sensors(scn, truth, xs, dt))
+            r_next = scn.propagate(r, k.astype(sim_dtype) * dt, dt)
+            truth = scn.truth_at(r_next, (k + 1).astype(sim_dtype) * dt)
+            return (r_next, k + 1), (truth, scn.sample(truth, xs, dt))
 
         _, (truths, samples) = jax.lax.scan(body, (scn.r0, jnp.zeros((), jnp.int32)), noise)
         cat = lambda a, b: jnp.concatenate([a[None], b], 0)  # noqa: E731
@@ -290,10 +311,10 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
         raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
     obs_dtype, sim_dtype = _dtypes(dtype)
     chunk = max(1, min(chunk, runs))
-    fn = _make_batch_fn(scenario, observer, params, n_steps=n_steps, dt=dt, errors_fn=errors_fn,
-                        window_start=window_start, hold=hold, trace_every=trace_every,
-                        trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
-    batched = jax.jit(lambda k: fn(k)[:2])
+    fn = _batch_fn_jit(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
+                       hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
+                       sim_dtype=sim_dtype)
+    batched = lambda k: fn(scenario, params, k)[:2]  # noqa: E731 (the final states are dropped by the caller)
     per_run: Dict[str, list] = {}
     traces: Dict[str, list] = {}
     done: list = []

@@ -37,6 +37,7 @@ stands in for m); a missing gyro sample holds the last valid gyro reading.
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -261,8 +262,9 @@ def _sanitize(u: ImuSample, gyr_last, x1) -> ImuSample:
     return u._replace(gyr=jnp.where(gyr_ok, u.gyr, gyr_last), mag=jnp.where(mag_ok, u.mag, x1))
 
 
+@functools.lru_cache(maxsize=None)
 def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observer:
-    """Build the observer.
+    """Build the observer (cached: the same arguments give the same object, so jitted runners are reused).
 
     Args:
         x1_init: "first_sample" (x1^(0) = first vector sample; default, reproduces the paper's numbers) or

@@ -60,6 +60,21 @@ class ImuScenario(NamedTuple):
     vec_noise_std: jax.Array
     noise_scale: jax.Array
 
+    # The simulator interface used by jaxatt.montecarlo (any scenario type providing these plugs in):
+    n_channels = N_CHANNELS  # standard-normal numbers drawn per sample
+
+    def truth_at(self, r, t) -> "Truth":
+        """True quantities at time ``t`` (s) for the attitude ``r`` (body to nav)."""
+        return truth_at(self, r, t)
+
+    def propagate(self, r, t, dt):
+        """True attitude at ``t + dt`` from ``r`` at ``t``."""
+        return propagate_truth(self, r, t, dt)
+
+    def sample(self, truth: "Truth", noise, dt) -> ImuSample:
+        """Sensor sample at ``truth.t`` from ``n_channels`` standard-normal numbers."""
+        return sample_sensors(self, truth, noise, dt)
+
 
 class Truth(NamedTuple):
     """True quantities at one time: t (s), R (body to nav), omega (rad/s, body), earth rate and reference
@@ -77,14 +92,14 @@ def truth_at(scn: ImuScenario, r, t) -> Truth:
     return Truth(t, r, scn.rates.rate(t), so3.mv(rt, scn.earth_rate_nav), so3.mv(rt, scn.ref_nav))
 
 
-def noise_block(key, block_index, dtype) -> jax.Array:
-    """Standard-normal noise rows for samples 1 + block_index * NOISE_BLOCK ... (NOISE_BLOCK, N_CHANNELS)."""
-    return jax.random.normal(jax.random.fold_in(key, block_index), (NOISE_BLOCK, N_CHANNELS), dtype)
+def noise_block(key, block_index, dtype, channels: int = N_CHANNELS) -> jax.Array:
+    """Standard-normal noise rows for samples 1 + block_index * NOISE_BLOCK ... (NOISE_BLOCK, channels)."""
+    return jax.random.normal(jax.random.fold_in(key, block_index), (NOISE_BLOCK, channels), dtype)
 
 
-def initial_noise(key, dtype) -> jax.Array:
-    """Standard-normal noise of sample 0, (N_CHANNELS,)."""
-    return jax.random.normal(jax.random.fold_in(key, INIT_BLOCK), (N_CHANNELS,), dtype)
+def initial_noise(key, dtype, channels: int = N_CHANNELS) -> jax.Array:
+    """Standard-normal noise of sample 0, (channels,)."""
+    return jax.random.normal(jax.random.fold_in(key, INIT_BLOCK), (channels,), dtype)
 
 
 def sample_sensors(scn: ImuScenario, truth: Truth, noise, dt) -> ImuSample:
