@@ -53,20 +53,35 @@ def _runs(s: str) -> int:
     return v
 
 
+SIMULATED = ("batista-ges", "batista-so3")
+
+
+def _experiment(name: str):
+    from .experiments import REGISTRY
+
+    return REGISTRY[name]
+
+
 def _common(p: argparse.ArgumentParser):
     p.add_argument("--runs", type=_runs, default=100, help="Monte Carlo runs (default 100)")
     p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default 3600)")
     p.add_argument("--seed", type=int, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
     p.add_argument("--hold", choices=["zoh", "linear"], default="zoh",
                    help="sensor samples held over the RK4 step (zoh, default) or interpolated to the stage times")
-    p.add_argument("--x1-init", choices=["first-sample", "zero"], default="first-sample",
-                   help="x1^(0): first magnetometer sample (default; reproduces the paper) or zero (literal)")
+    p.add_argument("--x1-init", choices=["first-sample", "zero"], default=None,
+                   help="batista-ges: x1^(0) = first magnetometer sample (default; reproduces the paper) or zero "
+                        "(literal)")
+    p.add_argument("--m-init", choices=["rescaled", "first-sample"], default=None,
+                   help="batista-so3: m^(0) = first sample rescaled to |I_m| (default; Theorem 1) or the raw first "
+                        "sample (literal)")
+    p.add_argument("--integrator", choices=["lie", "rk4"], default=None,
+                   help="batista-so3: RKMK-4 on SO(3) (default) or plain RK4 on the 15 numbers (the paper's)")
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float32", action="store_true", help="run the observer in float32")
     prec.add_argument("--float64", action="store_true", help="run the observer in float64 (default)")
     p.add_argument("--chunk", type=_runs, default=250, help="runs vmapped together (memory vs speed)")
     p.add_argument("--json", default=None, help="write results JSON here (updated after every chunk)")
-    p.add_argument("--plot", default=None, help="write a PNG of Figs. 2-5 style convergence plots here")
+    p.add_argument("--plot", default=None, help="write a PNG of the paper's convergence figures here")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
@@ -75,12 +90,12 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
 
     rp = sub.add_parser("reproduce", help="run a paper's simulation study and compare with its published numbers")
-    rp.add_argument("experiment", choices=["batista-ges"])
-    rp.add_argument("--aggressive", action="store_true", help="the 20x faster angular velocity of Section IV")
+    rp.add_argument("experiment", choices=list(SIMULATED))
+    rp.add_argument("--aggressive", action="store_true", help="the 20x faster angular velocity (Section IV / 4)")
     _common(rp)
 
     sp = sub.add_parser("simulate", help="run an observer on a scenario you define with flags")
-    sp.add_argument("--observer", choices=["batista-ges"], required=True)
+    sp.add_argument("--observer", choices=list(SIMULATED), required=True)
     sp.add_argument("--trajectory", choices=["slow", "aggressive"], default="slow")
     sp.add_argument("--rate-scale", type=float, default=1.0, help="multiplies the angular-velocity profile")
     sp.add_argument("--latitude", type=float, default=None, help="latitude in degrees (north positive)")
@@ -92,10 +107,12 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--noise-scale", type=_nonneg, default=1.0, help="multiplies all noise (0 = noise-free)")
     sp.add_argument("--dt", type=_positive, default=0.01, help="sample period, s")
     sp.add_argument("--window-start", type=_nonneg, default=None, help="start of the steady-state window, s")
-    sp.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major; any 3x3)")
+    sp.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major)")
     sp.add_argument("--r0-euler", type=_floats(3), default=None, help="initial R^ as ZYX roll,pitch,yaw in degrees")
-    sp.add_argument("--x2-0", type=_floats(3), default=(0.0, 0.0, 0.0), help="initial x2^, nT/s")
-    sp.add_argument("--epsilon", type=float, default=0.5, help="Theorem-3 threshold on ||R^T R - I||_F, in (0,1)")
+    sp.add_argument("--x2-0", type=_floats(3), default=None, help="batista-ges: initial x2^, nT/s")
+    sp.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
+    sp.add_argument("--epsilon", type=float, default=None,
+                    help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0,1) (default 0.5)")
     _common(sp)
     return ap
 
@@ -141,28 +158,21 @@ def _table(rows, values: dict, paper: dict, units: dict) -> str:
 
 
 
-def _run(args, cfg, paper: dict, title: str) -> int:
+def _run(args, E, cfg, paper: dict, title: str) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
     from . import montecarlo, plot
-    from .experiments import batista_ges as E
-    from .observers import batista_ges as ges
 
     dtype = jnp.float32 if args.float32 else jnp.float64
     scn, obs = E.scenario(cfg), E.observer(cfg)
     params = E.params(cfg, dtype=jnp.float64)
-    ges.check_params(params)
+    E.check_params(params)
     config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg._asdict().items()}
     config.update(runs=args.runs, seed=args.seed, dtype=str(np.dtype(dtype)), chunk=args.chunk)
-    base = {"experiment": title, "config": config, "environment": _environment(),
-            "notes": ["x1^(0) = first magnetometer sample (reproduces the paper; --x1-init zero is the literal reading)"
-                      if cfg.x1_init == "first_sample" else "x1^(0) = 0 (literal reading of Section IV)",
-                      f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
-                      "Q = 1e5 C2 QD C2^T read literally (QD in the z-space)",
-                      "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs"]}
+    base = {"experiment": title, "config": config, "environment": _environment(), "notes": E.notes(cfg)}
     t0 = time.perf_counter()
 
     def on_chunk(res):
@@ -179,17 +189,13 @@ def _run(args, cfg, paper: dict, title: str) -> int:
     n_steps = int(round(cfg.duration / cfg.dt))
     timing = {"wall_s": wall, "runs": len(res.run_indices), "steps_per_run": n_steps,
               "run_steps_per_s": len(res.run_indices) * n_steps / wall}
-    rows = [("mean_angle_error_deg", "mean angle error t>=window"), ("std_x1", "std x1~ (Table 2)"),
-            ("std_x2", "std x2~ (Table 2)"), ("std_earth_rate", "std omega_E~ (Table 2)"),
-            ("std_z2", "std z2~ (Table 2)"), ("final_angle_error_deg", "final angle error"),
-            ("max_angle_error_deg", "max angle error t>=window")]
     units = dict(E.UNITS, final_angle_error_deg="deg", max_angle_error_deg="deg")
     print(f"{title}: {len(res.run_indices)} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, observer in "
           f"{np.dtype(dtype).name}, window t >= {cfg.window_start:g} s"
           + ("" if res.complete else "  [INTERRUPTED: partial results]"))
-    for n in base["notes"][:2]:
+    for n in base["notes"][:3]:
         print(f"  {n}")
-    print(_table(rows, summary, paper, units))
+    print(_table(E.TABLE_ROWS, summary, paper, units))
     print(f"final angle error: max over runs {summary['final_angle_error_deg']['max']:.4g} deg")
     print(f"wall {wall:.1f} s, {timing['run_steps_per_s']:.3g} run-steps/s (compile included)")
     payload = {**base, "complete": res.complete, "runs_done": len(res.run_indices), "metrics": summary,
@@ -198,9 +204,7 @@ def _run(args, cfg, paper: dict, title: str) -> int:
         summ, trace, _ = montecarlo.simulate(scn, obs, params, duration=cfg.duration, dt=cfg.dt, seed=args.seed,
                                              errors_fn=E.errors, window_start=cfg.window_start, hold=cfg.hold,
                                              trace_every=10, dtype=dtype)
-        plot.convergence_figure(trace, args.plot, title=f"{title} (run 0)",
-                                panels={"norm_x1": "|x1~| (nT)", "norm_x2": "|x2~| (nT/s)",
-                                        "norm_earth_rate": "|wE~| (deg/h)", "norm_z2": "|z2~|"},
+        plot.convergence_figure(trace, args.plot, title=f"{title} (run 0)", panels=E.PLOT_PANELS,
                                 steady_from_s=cfg.window_start)
         print(f"plot written to {args.plot}")
         payload["plot"] = args.plot
@@ -210,18 +214,37 @@ def _run(args, cfg, paper: dict, title: str) -> int:
     return 0 if res.complete else 130
 
 
+def _observer_settings(args, E, name: str) -> dict:
+    """Observer-specific flags mapped onto the experiment's Config; a flag of another observer is an error."""
+    given = {"x1_init": None if args.x1_init is None else args.x1_init.replace("-", "_"),
+             "m_init": None if args.m_init is None else args.m_init.replace("-", "_"),
+             "integrator": args.integrator,
+             "x2_0": getattr(args, "x2_0", None), "v_hat_0": getattr(args, "v0", None),
+             "epsilon": getattr(args, "epsilon", None)}
+    flags = {"x1_init": "--x1-init", "m_init": "--m-init", "integrator": "--integrator", "x2_0": "--x2-0",
+             "v_hat_0": "--v0", "epsilon": "--epsilon"}
+    kw = {}
+    for field, v in given.items():
+        if v is None:
+            continue
+        if field not in E.Config._fields:
+            raise ValueError(f"{flags[field]} does not apply to {name}")
+        kw[field] = v
+    return kw
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    from .experiments import batista_ges as E
-
-    x1 = "first_sample" if args.x1_init == "first-sample" else "zero"
+    name = args.experiment if args.command == "reproduce" else args.observer
+    E = _experiment(name)
     dur = args.duration if args.duration is not None else E.DURATION
     try:
+        obs_kw = _observer_settings(args, E, name)
         if args.command == "reproduce":
             traj = "aggressive" if args.aggressive else "slow"
-            cfg = E.Config(trajectory=traj, x1_init=x1, hold=args.hold, duration=dur,
-                           window_start=min(E.WINDOW_START, 2.0 * dur / 3.0))
-            return _run(args, cfg, E.PAPER[traj], f"batista-ges reproduce ({traj})")
+            cfg = E.Config(trajectory=traj, hold=args.hold, duration=dur,
+                           window_start=min(E.WINDOW_START, 2.0 * dur / 3.0), **obs_kw)
+            return _run(args, E, cfg, E.PAPER[traj], f"{name} reproduce ({traj})")
         # simulate
         r0 = args.r0
         if args.r0_euler is not None:
@@ -229,16 +252,17 @@ def main(argv: Optional[List[str]] = None) -> int:
 
             r0 = tuple(np.asarray(so3.euler_zyx_to_matrix(*np.deg2rad(args.r0_euler))).reshape(9))
         kw = dict(trajectory=args.trajectory, rate_scale=args.rate_scale, gyro_arw_deg_h_rthz=args.gyro_arw,
-                  mag_noise_nT=args.mag_noise, noise_scale=args.noise_scale, gyro_bias=args.gyro_bias, x1_init=x1,
-                  r_hat_0=r0, x2_0=args.x2_0, epsilon=args.epsilon, hold=args.hold, duration=dur, dt=args.dt,
-                  window_start=args.window_start if args.window_start is not None else min(E.WINDOW_START, 2.0 * dur / 3.0))
+                  mag_noise_nT=args.mag_noise, noise_scale=args.noise_scale, gyro_bias=args.gyro_bias,
+                  r_hat_0=r0, hold=args.hold, duration=dur, dt=args.dt,
+                  window_start=args.window_start if args.window_start is not None else min(E.WINDOW_START, 2.0 * dur / 3.0),
+                  **obs_kw)
         if args.latitude is not None:
             if not -90.0 <= args.latitude <= 90.0:
                 raise ValueError(f"--latitude must be in [-90, 90] degrees, got {args.latitude}")
             kw["latitude_deg"] = args.latitude
         if args.reference is not None:
             kw["reference_nT"] = args.reference
-        return _run(args, E.Config(**kw), {}, "batista-ges simulate")
+        return _run(args, E, E.Config(**kw), {}, f"{name} simulate")
     except ValueError as e:
         print(f"jaxatt: error: {e}", file=sys.stderr)
         return 2

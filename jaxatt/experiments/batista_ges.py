@@ -23,6 +23,12 @@ PAPER = {
     "aggressive": {"mean_angle_error_deg": 0.47},
 }
 UNITS = {"std_x1": "nT", "std_x2": "nT/s", "std_earth_rate": "deg/h", "std_z2": "-", "mean_angle_error_deg": "deg"}
+TABLE_ROWS = [("mean_angle_error_deg", "mean angle error t>=window"), ("std_x1", "std x1~ (Table 2)"),
+              ("std_x2", "std x2~ (Table 2)"), ("std_earth_rate", "std omega_E~ (Table 2)"),
+              ("std_z2", "std z2~ (Table 2)"), ("final_angle_error_deg", "final angle error"),
+              ("max_angle_error_deg", "max angle error t>=window")]
+PLOT_PANELS = {"norm_x1": "|x1~| (nT)", "norm_x2": "|x2~| (nT/s)", "norm_earth_rate": "|wE~| (deg/h)",
+               "norm_z2": "|z2~|"}
 
 
 class Config(NamedTuple):
@@ -74,6 +80,17 @@ def observer(cfg: Config):
     if cfg.x1_init not in ("first_sample", "zero"):
         raise ValueError(f"x1_init must be 'first_sample' or 'zero', got {cfg.x1_init!r}")
     return ges.make_observer(x1_init="first_sample" if cfg.x1_init == "first_sample" else "params")
+
+
+check_params = ges.check_params
+
+
+def notes(cfg: Config):
+    return ["x1^(0) = first magnetometer sample (reproduces the paper; --x1-init zero is the literal reading)"
+            if cfg.x1_init == "first_sample" else "x1^(0) = 0 (literal reading of Section IV)",
+            f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
+            "Q = 1e5 C2 QD C2^T read literally (QD in the z-space)",
+            "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs"]
 
 
 def errors(truth: imu.Truth, out: ges.Out):
