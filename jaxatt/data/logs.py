@@ -1,0 +1,226 @@
+"""Plain IMU logs on disk: CSV and NPZ, read into / written from :class:`jaxatt.ImuSample` of numpy arrays.
+
+Units and frames (not converted, not guessed): time ``t`` in s; ``gyr`` angular rate in rad/s; ``acc`` specific
+force in m/s^2; ``mag`` magnetic field in the user's unit (uT, nT, gauss: keep it consistent with the observer's
+parameters); all vectors in the sensor (body) frame. Optional ``quat_true``: ground-truth orientation, unit
+quaternion (w, x, y, z), sensor-to-reference (e.g. ENU), NaN where unknown.
+
+A missing reading is NaN (an empty CSV field reads as NaN); every observer documents what it does with one.
+Time must be finite and strictly increasing.
+
+CSV: one header line naming the columns (order free, extra columns ignored), comma-separated:
+``t, gyr_x, gyr_y, gyr_z`` required; ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of
+three; ``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17 significant digits, so a
+float64 log survives a round trip exactly.
+
+NPZ: arrays ``t`` (N,), ``gyr`` (N, 3), optional ``acc`` (N, 3), ``mag`` (N, 3), ``quat_true`` (N, 4). Loaded
+without pickle.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Optional, Tuple
+
+import numpy as np
+
+from ..observers.base import ImuSample
+
+__all__ = ["load_log", "save_log", "load_csv", "save_csv", "load_npz", "save_npz", "check_log", "CSV_COLUMNS"]
+
+#: Column names of the CSV format (vector groups in x, y, z order).
+CSV_COLUMNS = {
+    "t": ("t",),
+    "gyr": ("gyr_x", "gyr_y", "gyr_z"),
+    "acc": ("acc_x", "acc_y", "acc_z"),
+    "mag": ("mag_x", "mag_y", "mag_z"),
+    "quat_true": ("quat_w", "quat_x", "quat_y", "quat_z"),
+}
+
+
+def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tuple[ImuSample, Optional[np.ndarray]]:
+    """Validate a log and return it as float64 numpy arrays.
+
+    Raises ValueError if: ``t`` is not (N,) with N >= 1, not finite or not strictly increasing; ``gyr`` is not
+    (N, 3); ``acc`` / ``mag`` (when present) are not (N, 3); ``quat_true`` (when present) is not (N, 4).
+    NaN in gyr / acc / mag / quat_true is allowed (a missing reading); +-inf is not.
+    """
+    def arr(name, v, shape_tail):
+        try:
+            a = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: {name} is not numeric: {e}") from None
+        if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
+            want = "(N," + "".join(f" {d}" for d in shape_tail) + ")"
+            raise ValueError(f"{source}: {name} must have shape {want}, got {a.shape}")
+        return a
+
+    t = arr("t", samples.t, ())
+    n = t.shape[0]
+    if n < 1:
+        raise ValueError(f"{source}: the log is empty")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{source}: t must be finite (first bad index {int(np.argmin(np.isfinite(t)))})")
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.argmax(dt <= 0))
+        raise ValueError(f"{source}: t must be strictly increasing; t[{k}] = {t[k]!r} >= t[{k + 1}] = {t[k + 1]!r}")
+    out = {"t": t}
+    for name in ("gyr", "acc", "mag"):
+        v = getattr(samples, name)
+        if v is None:
+            if name == "gyr":
+                raise ValueError(f"{source}: gyr is required")
+            out[name] = None
+            continue
+        a = arr(name, v, (3,))
+        if a.shape[0] != n:
+            raise ValueError(f"{source}: {name} has {a.shape[0]} rows but t has {n}")
+        if np.any(np.isinf(a)):
+            raise ValueError(f"{source}: {name} contains inf (use NaN for a missing reading)")
+        out[name] = a
+    q = None
+    if quat_true is not None:
+        q = arr("quat_true", quat_true, (4,))
+        if q.shape[0] != n:
+            raise ValueError(f"{source}: quat_true has {q.shape[0]} rows but t has {n}")
+        if np.any(np.isinf(q)):
+            raise ValueError(f"{source}: quat_true contains inf (use NaN where unknown)")
+    return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
+
+
+# ------------------------------------------------------------------------------------------------------------
+# CSV
+# ------------------------------------------------------------------------------------------------------------
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _parse_float(s: str, row: int, col: str, source: str) -> float:
+    s = s.strip()
+    if s == "":
+        return np.nan
+    try:
+        return float(s)
+    except ValueError:
+        raise ValueError(f"{source}: line {row}: column {col!r}: {s!r} is not a number") from None
+
+
+def load_csv(path, *, with_truth: bool = False):
+    """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None))."""
+    path = Path(path)
+    src = str(path)
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise ValueError(f"{src}: empty file (a header line is required)") from None
+        rows = [r for r in reader if r and any(c.strip() for c in r)]
+    if any(header) and all(_is_number(h) for h in header if h):
+        raise ValueError(f"{src}: the first line must be a header naming the columns "
+                         f"(t, gyr_x, gyr_y, gyr_z, ...), got numbers")
+    if len(set(header)) != len(header):
+        raise ValueError(f"{src}: duplicate column names in the header: {header}")
+    idx = {h: i for i, h in enumerate(header)}
+    for c in CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]:
+        if c not in idx:
+            raise ValueError(f"{src}: required column {c!r} missing (header: {header})")
+    groups = {}
+    for name, cols in CSV_COLUMNS.items():
+        present = [c in idx for c in cols]
+        if any(present) and not all(present):
+            missing = [c for c, p in zip(cols, present) if not p]
+            raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
+        if all(present):
+            groups[name] = cols
+    if not rows:
+        raise ValueError(f"{src}: no data rows")
+    data = {}
+    for name, cols in groups.items():
+        a = np.empty((len(rows), len(cols)))
+        for j, c in enumerate(cols):
+            i = idx[c]
+            for k, r in enumerate(rows):
+                if i >= len(r):
+                    raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
+                a[k, j] = _parse_float(r[i], k + 2, c, src)
+        data[name] = a[:, 0] if name == "t" else a
+    samples, q = check_log(ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")),
+                           data.get("quat_true"), source=src)
+    return (samples, q) if with_truth else samples
+
+
+def save_csv(path, samples: ImuSample, quat_true=None) -> None:
+    """Write a CSV log with a header (t, gyr_*, then acc_*, mag_*, quat_* where present); NaN as 'nan'."""
+    samples, q = check_log(samples, quat_true, source=str(path))
+    cols, blocks = list(CSV_COLUMNS["t"]), [samples.t[:, None]]
+    for name in ("gyr", "acc", "mag"):
+        v = getattr(samples, name)
+        if v is not None:
+            cols += CSV_COLUMNS[name]
+            blocks.append(v)
+    if q is not None:
+        cols += CSV_COLUMNS["quat_true"]
+        blocks.append(q)
+    np.savetxt(path, np.concatenate(blocks, axis=1), delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+
+
+# ------------------------------------------------------------------------------------------------------------
+# NPZ
+# ------------------------------------------------------------------------------------------------------------
+def load_npz(path, *, with_truth: bool = False):
+    """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q))."""
+    src = str(path)
+    with np.load(path, allow_pickle=False) as z:
+        keys = set(z.files)
+        for k in ("t", "gyr"):
+            if k not in keys:
+                raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)})")
+        get = lambda k: z[k] if k in keys else None  # noqa: E731
+        samples, q = check_log(ImuSample(get("t"), get("gyr"), get("acc"), get("mag")), get("quat_true"), source=src)
+    return (samples, q) if with_truth else samples
+
+
+def save_npz(path, samples: ImuSample, quat_true=None) -> None:
+    """Write an NPZ log (uncompressed, float64)."""
+    samples, q = check_log(samples, quat_true, source=str(path))
+    arrays = {"t": samples.t, "gyr": samples.gyr}
+    for name in ("acc", "mag"):
+        if getattr(samples, name) is not None:
+            arrays[name] = getattr(samples, name)
+    if q is not None:
+        arrays["quat_true"] = q
+    with open(path, "wb") as f:  # a file object: np.savez would otherwise append ".npz" to other suffixes
+        np.savez(f, **arrays)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# By suffix
+# ------------------------------------------------------------------------------------------------------------
+def _kind(path) -> str:
+    suf = Path(path).suffix.lower()
+    if suf == ".csv":
+        return "csv"
+    if suf == ".npz":
+        return "npz"
+    raise ValueError(f"{path}: unknown log format {suf!r} (use .csv or .npz)")
+
+
+def load_log(path, *, with_truth: bool = False):
+    """Read a .csv or .npz log (see the module docstring for columns, units and frames).
+
+    Returns ImuSample(t (N,), gyr (N, 3), acc (N, 3) or None, mag (N, 3) or None) of float64 numpy arrays, or
+    (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. Raises ValueError on wrong shapes,
+    missing columns, non-numeric fields, non-finite or non-increasing time.
+    """
+    return (load_csv if _kind(path) == "csv" else load_npz)(path, with_truth=with_truth)
+
+
+def save_log(path, samples: ImuSample, quat_true=None) -> None:
+    """Write a .csv or .npz log (format from the suffix); validates like :func:`load_log`."""
+    (save_csv if _kind(path) == "csv" else save_npz)(path, samples, quat_true)

@@ -3,11 +3,11 @@
 References:
 
 * R. Mahony, T. Hamel, J.-M. Pflimlin, "Nonlinear complementary filters on the special orthogonal group",
-  IEEE Trans. Automatic Control 53(5), 2008: the *explicit complementary filter with bias correction*
-  (their eq. 32):  dR/dt = R (Omega_y - b + kP w_mes)x,  db/dt = -kI w_mes,  w_mes = sum_i k_i v_i x v^_i.
+  IEEE Trans. Automatic Control 53(5), 2008: the *explicit complementary filter with bias correction*,
+  dR/dt = R (Omega_y - b + kP w_mes)x,  db/dt = -kI w_mes,  w_mes = sum_i k_i v_i x v^_i.
 * J. Trumpf, R. Mahony, T. Hamel, C. Lageman, "Analysis of non-linear attitude observers for time-varying
   reference measurements", IEEE TAC 2012 (../shared/papers/trumpf2012-time-varying-reference-observers.txt):
-  the observer is their eq. (10) (the "passive" complementary filter) with n1 = 2 body-frame measurements
+  the observer is their eq. (10) (the passive / explicit complementary filter) with n1 = 2 body-frame measurements
   a_1 = acc, a_2 = mag, n2 = 0, gains k_i = Kp and *constant* references a_1 = e_z, a_2 = b, plus Mahony's
   integral bias estimate (eq. 10 itself has no bias term).
 * D. Laidig et al., "BROAD - A Benchmark for Robust Inertial Orientation Estimation", Data 6(7), 2021 and its
@@ -19,8 +19,9 @@ What one step computes (time step dt, sample = gyro y, accelerometer a, magnetom
 1. a_bar = a / |a|, m_bar = m / |m|.
 2. Estimated directions in the body frame: v^ = R^T e_z (gravity, "up"), and the magnetic reference is
    re-estimated every step from the measurement itself (Madgwick's variant):  h = R m_bar (field in the filter's
-   earth frame), b = (sqrt(h_x^2 + h_y^2), 0, h_z), w^ = R^T b.  The mag correction therefore only acts on
-   heading, never on inclination.
+   earth frame), b = (sqrt(h_x^2 + h_y^2), 0, h_z), w^ = R^T b.  Its term m_bar x w^ = R^T (h x b) is mostly
+   about the vertical (heading); it has a tilt component proportional to h_z when h is far from b (large
+   heading errors), so the magnetometer is not fully decoupled from inclination.
 3. w_mes = a_bar x v^ + m_bar x w^   (Mahony's omega_mes with k_1 = k_2 = 1).
 4. Integral ("bias") term, updated *before* use:  xi <- xi + Ki w_mes dt   (xi = -b^, b^ the gyro-bias estimate).
 5. Omega = y + xi + Kp w_mes.
@@ -42,12 +43,15 @@ Initial orientation (``make_observer(init_mode=...)``):
 
 * ``"broad"`` (default): exactly BROAD's ``quatFromAccMag(acc[0], mag[0])``: z = a, x = (z x -m) x z, y = z x x,
   R0 = [x/|x|, y/|y|, z/|z|] (as columns), q0 = BROAD's ``quatFromRotMat(R0)`` (w >= 0, signs of the other
-  components from the off-diagonal differences). Note that R0's columns are the axes of a south-east-up frame
-  written in sensor coordinates, i.e. R0 is an earth-to-sensor matrix, whereas the filter reads q0 as
-  sensor-to-NWU: for a level sensor facing north the start is 180 deg off in heading, and in general it is wrong
-  in inclination too. BROAD's trials begin with a rest phase long enough for the filter to converge before the
-  ``movement`` samples that are scored, and the published Mahony numbers include this start, so it is kept for
-  reproduction.
+  components from the off-diagonal differences). R0's columns are the axes of a south-east-up frame written in
+  sensor coordinates (an earth-to-sensor matrix), which the filter reads as sensor-to-NWU: with R the true
+  sensor-to-NWU rotation the start is R^T diag(-1, -1, 1). That is right only when R^2 = diag(-1, -1, 1), i.e. for
+  a level sensor whose x axis points to magnetic east or west - roughly how the BROAD trials start (start errors
+  1-9 deg against the optical truth); for a level sensor facing north it is 180 deg off, and from there the
+  filter lingers for minutes near a tilted spurious equilibrium (the gravity term balancing the tilt part of
+  the magnetometer term; measured: still 177 deg off after 60 s with Kp = 2 and gyro noise). On BROAD the filter
+  converges in the rest phase before the scored ``movement`` samples, and the published numbers include this
+  start, so it is kept for reproduction. Use "triad" on other data.
 * ``"triad"``: the correct sensor-to-NWU orientation from the same two vectors (rows: north, west, up in sensor
   coordinates), for users who want the filter to start converged.
 
@@ -56,9 +60,10 @@ Missing samples (NaN in a log; also all-zero vectors, which the C code treats as
 * a missing accelerometer sample drops the gravity term of w_mes for that step;
 * a missing magnetometer sample drops the magnetic term (the C code then runs its IMU-only update, which is the
   same thing);
-* with both missing the step is pure gyro integration and the integral is unchanged. (One deliberate difference
-  from the C code: there an all-zero accelerometer sample also skips a valid magnetometer; here the magnetometer
-  term is kept.)
+* with both missing the step integrates the bias-corrected gyro (Omega = y + xi) and the integral is unchanged.
+  (Deliberate differences from the C code, which skips its whole feedback block when the accelerometer is all
+  zero: there a valid magnetometer sample is skipped too, and the bias estimate is not applied in that step.
+  Neither case occurs in BROAD's data.)
 * a missing (non-finite) gyro sample is replaced by the last valid one (``State.gyr_last``).
 
 The first sample: a non-finite acc or mag there gives the identity quaternion (sensor = NWU) as start.
@@ -274,12 +279,14 @@ def _update(q, integral, g, a, m, acc_ok, mag_ok, kp, ki, dt):
     ix = jnp.where(use_i, jnp.where(any_ok, ix, integral[0]), 0.0)
     iy = jnp.where(use_i, jnp.where(any_ok, iy, integral[1]), 0.0)
     iz = jnp.where(use_i, jnp.where(any_ok, iz, integral[2]), 0.0)
-    gxc = jnp.where(use_i, gx + ix, gx) + two_kp * halfex
-    gyc = jnp.where(use_i, gy + iy, gy) + two_kp * halfey
-    gzc = jnp.where(use_i, gz + iz, gz) + two_kp * halfez
-    gx = jnp.where(any_ok, gxc, gx)
-    gy = jnp.where(any_ok, gyc, gy)
-    gz = jnp.where(any_ok, gzc, gz)
+    gx = jnp.where(use_i, gx + ix, gx)
+    gy = jnp.where(use_i, gy + iy, gy)
+    gz = jnp.where(use_i, gz + iz, gz)
+    # With no valid vector the proportional term is skipped (halfe is zero then anyway; the C code skips the
+    # whole block, bias included - here the bias estimate keeps being applied).
+    gx = jnp.where(any_ok, gx + two_kp * halfex, gx)
+    gy = jnp.where(any_ok, gy + two_kp * halfey, gy)
+    gz = jnp.where(any_ok, gz + two_kp * halfez, gz)
 
     # Integrate the rate of change of the quaternion.
     half_dt = 0.5 * dt

@@ -1,0 +1,120 @@
+"""Plain IMU logs: CSV / NPZ round trips and clear errors on bad input."""
+import numpy as np
+import pytest
+
+from jaxatt.data import logs
+from jaxatt.observers.base import ImuSample
+
+
+def make_log(n=50, seed=0, with_acc=True, with_mag=True):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.001, 0.02, n)) + 1e3 / 3
+    gyr = rng.normal(size=(n, 3))
+    acc = rng.normal(size=(n, 3)) * 9.81 if with_acc else None
+    mag = rng.normal(size=(n, 3)) * 48.123456789 if with_mag else None
+    gyr[3, 1] = np.nan
+    if with_acc:
+        acc[7] = np.nan
+    if with_mag:
+        mag[11, 2] = np.nan
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[5] = np.nan
+    return ImuSample(t, gyr, acc, mag), q
+
+
+def assert_same(a: ImuSample, b: ImuSample):
+    for name in ("t", "gyr", "acc", "mag"):
+        x, y = getattr(a, name), getattr(b, name)
+        if x is None:
+            assert y is None, name
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=name)  # NaN == NaN here; exact equality otherwise
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npz"])
+@pytest.mark.parametrize("sensors", [(True, True), (True, False), (False, False)])
+def test_round_trip(tmp_path, suffix, sensors):
+    s, q = make_log(with_acc=sensors[0], with_mag=sensors[1])
+    p = tmp_path / f"log{suffix}"
+    logs.save_log(p, s, q)
+    back, q_back = logs.load_log(p, with_truth=True)
+    assert_same(s, back)
+    np.testing.assert_array_equal(q, q_back)
+    assert back.gyr.dtype == np.float64 and isinstance(back.t, np.ndarray)
+    assert_same(s, logs.load_log(p))  # without truth: just the samples
+    logs.save_log(p, s)
+    assert logs.load_log(p, with_truth=True)[1] is None
+
+
+def test_csv_column_order_extras_and_empty_fields(tmp_path):
+    p = tmp_path / "x.csv"
+    p.write_text(
+        "note,mag_z,mag_y,mag_x,t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z\n"
+        "a,3,2,1,0.0,0.1,0.2,0.3,0,0,9.8\n"
+        "b,6,5,4,0.01,,0.5,0.6,nan,0,9.8\n"
+        "\n"
+    )
+    s = logs.load_log(p)
+    np.testing.assert_array_equal(s.t, [0.0, 0.01])
+    np.testing.assert_array_equal(s.mag, [[1, 2, 3], [4, 5, 6]])
+    assert np.isnan(s.gyr[1, 0]) and s.gyr[1, 1] == 0.5
+    assert np.isnan(s.acc[1, 0])
+
+
+def test_csv_errors(tmp_path):
+    def bad(text, match):
+        p = tmp_path / "bad.csv"
+        p.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            logs.load_log(p)
+
+    bad("", "header")
+    bad("0.0,1,2,3\n0.1,1,2,3\n", "header")
+    bad("t,gyr_x,gyr_y\n0,1,2\n", "gyr_z")
+    bad("t,gyr_x,gyr_y,gyr_z,acc_x,acc_y\n0,1,2,3,4,5\n", "incomplete")
+    bad("t,gyr_x,gyr_y,gyr_z\n", "no data")
+    bad("t,gyr_x,gyr_y,gyr_z\n0,1,2,abc\n", "not a number")
+    bad("t,gyr_x,gyr_y,gyr_z\n0,1,2\n", "fields")
+    bad("t,gyr_x,gyr_y,gyr_z\n0.1,1,2,3\n0.1,1,2,3\n", "strictly increasing")
+    bad("t,gyr_x,gyr_y,gyr_z\n0.2,1,2,3\n0.1,1,2,3\n", "strictly increasing")
+    bad("t,gyr_x,gyr_y,gyr_z\nnan,1,2,3\n0.1,1,2,3\n", "finite")
+    bad("t,gyr_x,gyr_y,gyr_z\n0,1,2,inf\n", "inf")
+    bad("t,t,gyr_x,gyr_y,gyr_z\n0,0,1,2,3\n", "duplicate")
+
+
+def test_npz_errors(tmp_path):
+    p = tmp_path / "bad.npz"
+    np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"gyr must have shape \(N, 3\)"):
+        logs.load_log(p)
+    np.savez(p, t=np.arange(3.0))
+    with pytest.raises(ValueError, match="'gyr' missing"):
+        logs.load_log(p)
+    np.savez(p, t=np.arange(3.0), gyr=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="rows"):
+        logs.load_log(p)
+    np.savez(p, t=np.array([0.0, 2.0, 1.0]), gyr=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        logs.load_log(p)
+    np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 3)), quat_true=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="quat_true"):
+        logs.load_log(p, with_truth=True)
+
+
+def test_save_validates_and_suffix(tmp_path):
+    s, _ = make_log()
+    with pytest.raises(ValueError, match=r"acc must have shape"):
+        logs.save_log(tmp_path / "a.csv", s._replace(acc=s.acc[:, :2]))
+    with pytest.raises(ValueError, match="rows"):
+        logs.save_log(tmp_path / "a.npz", s._replace(mag=s.mag[:-1]))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        logs.save_log(tmp_path / "a.npz", s._replace(t=s.t[::-1]))
+    with pytest.raises(ValueError, match="unknown log format"):
+        logs.save_log(tmp_path / "a.txt", s)
+    with pytest.raises(ValueError, match="unknown log format"):
+        logs.load_log(tmp_path / "a.h5")
+    # NPZ with another suffix spelling keeps its name (np.savez appends .npz to names it does not recognise)
+    logs.save_log(tmp_path / "UPPER.NPZ", s)
+    assert (tmp_path / "UPPER.NPZ").exists()
+    assert_same(s, logs.load_log(tmp_path / "UPPER.NPZ"))
