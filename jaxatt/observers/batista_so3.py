@@ -291,7 +291,7 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
             v_hat, (m_hat, r) = rkmk4_step(f, s.v_hat, (s.m_hat, s.r), u, dt)
             # Exact in exact arithmetic; in float32 the rounding of consecutive, nearly equal exp(S(phi)) adds up
             # linearly (~1e-8 per step). One Newton-Schulz step and a rescale hold R^ and |m^| at rounding level.
-            r = so3.mm(r, 1.5 * jnp.eye(3, dtype=r.dtype) - 0.5 * so3.mm(jnp.swapaxes(r, -1, -2), r))
+            r = so3.reorthonormalize(r)
             m_hat = m_hat * (s.m_norm / jnp.linalg.norm(m_hat))
         else:
             def f(x, uu):

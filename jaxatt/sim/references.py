@@ -20,6 +20,12 @@ Scenario constructors (plain floats in, a :class:`VectorScenario` out; degrees i
 
 :data:`SCENARIOS` maps names to constructors; :func:`make_scenario` builds one by name (for the CLI).
 :func:`simulate_vectors` returns ``(samples, truth_r)``. Noise only through an explicit PRNG key.
+
+A :class:`VectorScenario` also provides the simulator interface of :mod:`jaxatt.montecarlo` (``n_channels``,
+``truth_at``, ``propagate``, ``sample``), so ``montecarlo.simulate`` / ``monte_carlo`` / ``simulate_log`` run
+the complementary observer on it fused with the simulation (``errors_fn=vector_errors`` reports the bias
+error). Both paths share :meth:`VectorScenario.sample`; their noise streams differ (explicit key here,
+the runner's per-run block stream there).
 """
 from __future__ import annotations
 
@@ -36,9 +42,9 @@ from ..integrate import magnus4_step
 from ..observers.complementary import VectorSample
 from .trajectories import SinusoidRates
 
-__all__ = ["Directions", "VectorScenario", "rotating_reference", "switching_reference", "constant_reference",
-           "two_constant_references", "body_fixed_reference", "SCENARIOS", "make_scenario", "simulate_vectors",
-           "body_rates", "constant_directions"]
+__all__ = ["Directions", "VectorScenario", "VectorTruth", "vector_errors", "rotating_reference",
+           "switching_reference", "constant_reference", "two_constant_references", "body_fixed_reference",
+           "SCENARIOS", "make_scenario", "simulate_vectors", "body_rates", "constant_directions"]
 
 
 class Directions(NamedTuple):
@@ -87,6 +93,20 @@ def constant_directions(v) -> Directions:
     return Directions(v, v, np.tile([0.0, 0.0, 1.0], (n, 1)), np.zeros(n), np.full(n, np.inf))
 
 
+class VectorTruth(NamedTuple):
+    """True quantities at one time: t (s), R (3, 3) body to inertial, Omega (3,) rad/s body, gyro bias (3,)."""
+
+    t: jax.Array
+    r: jax.Array
+    omega: jax.Array
+    gyro_bias: jax.Array
+
+
+def vector_errors(truth: VectorTruth, out) -> dict:
+    """``errors_fn`` for :func:`jaxatt.montecarlo.simulate`: the gyro-bias estimation error (rad/s, body)."""
+    return {"bias": out.bias - truth.gyro_bias.astype(out.bias.dtype)}
+
+
 class VectorScenario(NamedTuple):
     """A simulated platform for vector measurements (all arrays; a pytree).
 
@@ -117,6 +137,32 @@ class VectorScenario(NamedTuple):
     def n_inertial(self) -> int:
         """n2, the number of compatible (inertial-frame) measurements."""
         return self.ref_body.n
+
+    # The simulator interface of jaxatt.montecarlo.
+    @property
+    def n_channels(self) -> int:
+        """Standard-normal numbers drawn per sample: gyro (3), then 3 per measurement (a_i, then b_j)."""
+        return 3 + 3 * (self.n_body + self.n_inertial)
+
+    def truth_at(self, r, t) -> VectorTruth:
+        """True quantities at time ``t`` (s) for the attitude ``r``."""
+        return VectorTruth(t, r, self.rates.rate(t), self.gyro_bias)
+
+    def propagate(self, r, t, dt):
+        """True attitude at ``t + dt`` from ``r`` at ``t`` (4th-order Magnus step, exact Omega(t))."""
+        return magnus4_step(r, self.rates.rate, t, dt)
+
+    def sample(self, truth: VectorTruth, noise, dt) -> VectorSample:
+        """Sample at ``truth.t`` from ``n_channels`` standard-normal numbers ``noise``: gyr = Omega + bias +
+        gyro_noise_std n; a_i = R^T å_i + meas_noise_std n; b_j = R b̊_j + meas_noise_std n."""
+        n1, n2 = self.n_body, self.n_inertial
+        ar = self.ref_inertial.at(truth.t)
+        br = self.ref_body.at(truth.t)
+        rt = jnp.swapaxes(truth.r, -1, -2)
+        gyr = truth.omega + self.gyro_bias + self.gyro_noise_std * noise[..., 0:3]
+        a = so3.mv(rt, ar) + self.meas_noise_std * noise[..., 3:3 + 3 * n1].reshape(n1, 3)
+        b = so3.mv(truth.r, br) + self.meas_noise_std * noise[..., 3 + 3 * n1:].reshape(n2, 3)
+        return VectorSample(truth.t, gyr, a, ar, b, br)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -161,7 +207,8 @@ _NONE = constant_directions(np.zeros((0, 3)))
 
 
 def _common(kw):
-    return dict(r0_euler_deg=kw.pop("r0_euler_deg", (20.0, -10.0, 30.0)), gyro_bias_deg_s=kw.pop("gyro_bias_deg_s", 0.0),
+    return dict(r0_euler_deg=kw.pop("r0_euler_deg", (20.0, -10.0, 30.0)),
+                gyro_bias_deg_s=kw.pop("gyro_bias_deg_s", 0.0),
                 gyro_noise_std=kw.pop("gyro_noise_std", 0.0), meas_noise_std=kw.pop("meas_noise_std", 0.0),
                 dtype=kw.pop("dtype", None))
 
@@ -236,7 +283,8 @@ def body_fixed_reference(direction=(0.0, 0.0, 1.0), rate_deg_s: float = 20.0, wo
     body turning at ``rate_deg_s`` about body x plus a sinusoidal wobble of amplitude ``wobble_deg_s`` on
     each axis. With b̊ = e3 the condition of the end of Section III, ||∫ Omega x b̊|| > 0, holds."""
     c = _common(kw)
-    rates = kw.pop("rates", None) or body_rates(amplitude_deg_s=(wobble_deg_s,) * 3, offset_deg_s=(rate_deg_s, 0.0, 0.0))
+    rates = kw.pop("rates", None) or body_rates(amplitude_deg_s=(wobble_deg_s,) * 3,
+                                                offset_deg_s=(rate_deg_s, 0.0, 0.0))
     _no_extra(kw)
     return _scenario(_NONE, constant_directions(direction), rates, **c)
 
@@ -295,21 +343,12 @@ def _simulate(scn: VectorScenario, n_steps: int, dt: float, key):
     t = jnp.arange(n_steps + 1, dtype=dtype) * dt
 
     def body(r, tk):
-        r_next = magnus4_step(r, scn.rates.rate, tk, dt)
+        r_next = scn.propagate(r, tk, dt)
         return r_next, r_next
 
     _, rs = jax.lax.scan(body, scn.r0, t[:-1])
     truth_r = jnp.concatenate([scn.r0[None], rs], axis=0)
-    omega = jax.vmap(scn.rates.rate)(t)
-    ar = jax.vmap(scn.ref_inertial.at)(t)  # (N+1, n1, 3)
-    br = jax.vmap(scn.ref_body.at)(t)  # (N+1, n2, 3)
-    rt = jnp.swapaxes(truth_r, -1, -2)
-    a = so3.mv(rt[:, None], ar)  # R^T å
-    b = so3.mv(truth_r[:, None], br)  # R b̊
-    gyr = omega + scn.gyro_bias
-    if key is not None:
-        kg, ka, kb = (jax.random.fold_in(key, i) for i in range(3))
-        gyr = gyr + scn.gyro_noise_std * jax.random.normal(kg, gyr.shape, dtype)
-        a = a + scn.meas_noise_std * jax.random.normal(ka, a.shape, dtype)
-        b = b + scn.meas_noise_std * jax.random.normal(kb, b.shape, dtype)
-    return VectorSample(t, gyr, a, ar, b, br), truth_r
+    shape = (n_steps + 1, scn.n_channels)
+    noise = jnp.zeros(shape, dtype) if key is None else jax.random.normal(key, shape, dtype)
+    samples = jax.vmap(lambda r, tk, n: scn.sample(scn.truth_at(r, tk), n, dt))(truth_r, t, noise)
+    return samples, truth_r
