@@ -54,6 +54,7 @@ def _runs(s: str) -> int:
 
 
 SIMULATED = ("batista-ges", "batista-so3")
+SIMULATE_OBSERVERS = SIMULATED + ("complementary",)
 
 
 def _experiment(name: str):
@@ -95,7 +96,7 @@ def _parser() -> argparse.ArgumentParser:
     _common(rp)
 
     sp = sub.add_parser("simulate", help="run an observer on a scenario you define with flags")
-    sp.add_argument("--observer", choices=list(SIMULATED), required=True)
+    sp.add_argument("--observer", choices=list(SIMULATE_OBSERVERS), required=True)
     sp.add_argument("--trajectory", choices=["slow", "aggressive"], default="slow")
     sp.add_argument("--rate-scale", type=float, default=1.0, help="multiplies the angular-velocity profile")
     sp.add_argument("--latitude", type=float, default=None, help="latitude in degrees (north positive)")
@@ -113,7 +114,31 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
     sp.add_argument("--epsilon", type=float, default=None,
                     help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0,1) (default 0.5)")
+    g = sp.add_argument_group("complementary (Trumpf et al. 2012) observer")
+    g.add_argument("--scenario", choices=["rotating", "switching", "constant", "two-constant", "body-fixed"],
+                   default="rotating", help="vector-measurement scenario (default rotating)")
+    g.add_argument("--form", choices=["matrix", "quaternion"], default="matrix", help="eq. (10) or eq. (18)")
+    g.add_argument("--gain", type=_positive, default=0.6, help="gain k_i = l_j of every measurement, 1/s")
+    g.add_argument("--k-i", type=_nonneg, default=0.0, help="gyro-bias integral gain, 1/s (0 = no bias estimate)")
+    g.add_argument("--gyro-noise", type=_nonneg, default=0.0, help="gyro white noise per sample, rad/s")
+    g.add_argument("--vector-noise", type=_nonneg, default=0.0, help="noise per component of the unit vectors")
     _common(sp)
+
+    ep = sub.add_parser("excitation", help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
+                                           "Lemmas 3.4, 4.2, conditions 6, 13) of a scenario or a log")
+    src = ep.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scenario", choices=["rotating", "switching", "constant", "two-constant", "body-fixed"])
+    src.add_argument("--log", help="CSV or NPZ log (jaxatt.data.logs): acc and mag vs constant references")
+    ep.add_argument("--duration", type=_positive, default=60.0, help="simulated duration of a scenario, s")
+    ep.add_argument("--dt", type=_positive, default=0.01, help="sample period of a scenario, s")
+    ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
+    ep.add_argument("--mag-ref", type=_floats(3), default=None,
+                    help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)")
+    ep.add_argument("--frame", choices=["NED", "ENU"], default="NED", help="log: navigation frame of --mag-ref")
+    ep.add_argument("--threshold", type=_nonneg, default=0.05,
+                    help="a window is reported as not exciting when lambda2 / T falls below this (default 0.05)")
+    ep.add_argument("--json", default=None, help="write the measures per window here")
+    ep.add_argument("--plot", default=None, help="write a PNG of the measures over time here")
     return ap
 
 
@@ -233,8 +258,90 @@ def _observer_settings(args, E, name: str) -> dict:
     return kw
 
 
+def _complementary_config(args, E, dur):
+    kw = dict(scenario=args.scenario.replace("-", "_"), form=args.form, gain=args.gain, k_i=args.k_i,
+              gyro_bias_deg_s=tuple(np.rad2deg(args.gyro_bias)), gyro_noise_std=args.gyro_noise,
+              meas_noise_std=args.vector_noise, noise_scale=args.noise_scale, hold=args.hold, duration=dur, dt=args.dt,
+              window_start=args.window_start if args.window_start is not None else 2.0 * dur / 3.0)
+    if args.r0_euler is not None:
+        kw["r_hat_0_euler_deg"] = args.r0_euler
+    if args.r0 is not None:
+        raise ValueError("--r0 does not apply to complementary; use --r0-euler")
+    return E.Config(**kw)
+
+
+def _excitation(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from . import analysis
+
+    if args.scenario:
+        from .sim import references
+
+        scn = references.make_scenario(args.scenario.replace("-", "_"))
+        res = analysis.excitation_of_scenario(scn, duration=args.duration, dt=args.dt, window=args.window)
+        source = f"scenario {args.scenario}, {args.duration:g} s at {1 / args.dt:g} Hz"
+    else:
+        from .data import logs
+        from .observers import complementary as comp
+
+        samples = logs.load_log(args.log)
+        if samples.acc is None and samples.mag is None:
+            raise ValueError("the log has neither acc nor mag columns")
+        fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
+        if "mag" in fields and args.mag_ref is None:
+            raise ValueError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")
+        up = comp.UP_NED if args.frame == "NED" else comp.UP_ENU
+        refs_ = [np.asarray(up, float)] if "acc" in fields else []
+        if "mag" in fields:
+            refs_.append(np.asarray(args.mag_ref, float))
+        p = comp.default_params(len(refs_), 0, ref_inertial=np.stack(refs_))
+        res = analysis.excitation_from_samples(samples, window=args.window, params=p, imu_fields=fields)
+        source = f"log {args.log} ({', '.join(fields)}; references in {args.frame})"
+    T = args.window
+    lam = np.asarray(res.lambda2) / T
+    bad = lam < args.threshold
+    print(f"excitation of {source}: {len(lam)} windows of T = {T:g} s")
+    rows = [("lambda2 / T  (Def. 3.3/4.1)", lam), ("lambda_min projector / T (Lemma 3.4/4.2)",
+                                                   np.asarray(res.lambda_min_projector) / T),
+            ("condition (6)/(13) / T", np.asarray(res.condition) / T)]
+    print(f"{'measure':42s} {'min':>10s} {'median':>10s} {'max':>10s}")
+    for label, v in rows:
+        print(f"{label:42s} {np.min(v):10.4g} {np.median(v):10.4g} {np.max(v):10.4g}")
+    if bad.any():
+        t0 = np.asarray(res.t_start)[bad]
+        print(f"NOT exciting (lambda2/T < {args.threshold:g}) in {bad.mean() * 100:.1f} % of the windows, "
+              f"first at t = {t0[0]:.2f} s, last at t = {t0[-1]:.2f} s")
+    else:
+        print(f"exciting in every window (lambda2/T >= {args.threshold:g})")
+    if args.json:
+        _write_json(args.json, {"source": source, "window_s": T, "threshold": args.threshold,
+                                "measures": {k: np.asarray(v).tolist() for k, v in res._asdict().items()},
+                                "environment": _environment()})
+        print(f"results written to {args.json}")
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 3.2), constrained_layout=True)
+        analysis.plot_excitation(res, ax=ax, threshold=args.threshold, title=f"excitation: {source}")
+        fig.savefig(args.plot, dpi=110)
+        plt.close(fig)
+        print(f"plot written to {args.plot}")
+    return 0
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "excitation":
+        try:
+            return _excitation(args)
+        except ValueError as e:
+            print(f"jaxatt: error: {e}", file=sys.stderr)
+            return 2
     name = args.experiment if args.command == "reproduce" else args.observer
     E = _experiment(name)
     dur = args.duration if args.duration is not None else E.DURATION
@@ -246,6 +353,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                            window_start=min(E.WINDOW_START, 2.0 * dur / 3.0), **obs_kw)
             return _run(args, E, cfg, E.PAPER[traj], f"{name} reproduce ({traj})")
         # simulate
+        if name == "complementary":
+            return _run(args, E, _complementary_config(args, E, dur), {}, f"{name} simulate ({args.scenario})")
         r0 = args.r0
         if args.r0_euler is not None:
             from . import so3

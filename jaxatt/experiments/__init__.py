@@ -1,4 +1,4 @@
 """Paper set-ups as experiments (scenario + observer + params + errors + published numbers)."""
-from . import batista_ges, batista_so3  # noqa: F401
+from . import batista_ges, batista_so3, complementary  # noqa: F401
 
-REGISTRY = {batista_ges.NAME: batista_ges, batista_so3.NAME: batista_so3}
+REGISTRY = {m.NAME: m for m in (batista_ges, batista_so3, complementary)}
