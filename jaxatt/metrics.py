@@ -3,6 +3,8 @@
 * :class:`RunningStats`: Welford mean / variance per element, over the steps whose weight is 1.
 * :class:`WindowMetrics`: per-run Table-2 style statistics of named error vectors and the rotation-angle
   error over a steady-state window [window_start, end], plus the values at the last step.
+* :class:`WindowMoments`: per-run mean absolute error and RMS of named errors over several named time windows
+  (e.g. the transient 0-200 s and steady-state 300-500 s windows of sensors2020-interconnected-observer).
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ import jax.numpy as jnp
 from . import so3
 
 __all__ = ["RunningStats", "stats_init", "stats_update", "stats_std", "WindowMetrics", "window_init",
-           "window_update", "window_summary", "angle_error_deg"]
+           "window_update", "window_summary", "angle_error_deg", "WindowMoments", "moments_init", "moments_update",
+           "moments_summary", "check_windows", "wrap_angle"]
 
 
 class RunningStats(NamedTuple):
@@ -92,4 +95,75 @@ def window_summary(acc: WindowMetrics) -> Dict[str, jax.Array]:
     for k, s in acc.errors.items():
         out[f"std_{k}"] = jnp.mean(stats_std(s))
         out[f"final_norm_{k}"] = jnp.sqrt(jnp.sum(acc.errors_last[k] ** 2))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------
+# MAE / RMSE of named errors over named time windows
+# ------------------------------------------------------------------------------------------------------
+def wrap_angle(a):
+    """Angle (rad) wrapped to (-pi, pi] (smooth: atan2(sin a, cos a))."""
+    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+def check_windows(windows) -> tuple:
+    """Validate and normalise ``windows`` = ((name, start_s, end_s), ...) into a hashable tuple."""
+    out = []
+    for w in windows:
+        try:
+            name, start, end = w
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"each window must be (name, start_s, end_s), got {w!r}") from e
+        start, end = float(start), float(end)
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ValueError(f"window names must be identifiers, got {name!r}")
+        if not (start == start and end == end) or end < start:  # NaN or reversed
+            raise ValueError(f"window {name!r} must have start <= end, got ({start}, {end})")
+        out.append((name, start, end))
+    if len({w[0] for w in out}) != len(out):
+        raise ValueError(f"window names must be unique, got {[w[0] for w in out]}")
+    return tuple(out)
+
+
+class WindowMoments(NamedTuple):
+    """Per-run sums over each window (leading axis = window): sample count, sum |e| and sum e^2 per element."""
+
+    count: jax.Array
+    sum_abs: Dict[str, jax.Array]
+    sum_sq: Dict[str, jax.Array]
+
+
+def moments_init(error_shapes: Dict[str, tuple], n_windows: int, dtype) -> WindowMoments:
+    return WindowMoments(jnp.zeros((n_windows,), dtype),
+                         {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()},
+                         {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()})
+
+
+def moments_update(acc: WindowMoments, errors: Dict[str, jax.Array], t, windows, tol) -> WindowMoments:
+    """Add the errors at sample time ``t`` to every window with start - tol <= t <= end + tol."""
+    dtype = acc.count.dtype
+    starts = jnp.asarray([w[1] for w in windows], dtype)
+    ends = jnp.asarray([w[2] for w in windows], dtype)
+    t = jnp.asarray(t, dtype)
+    w = ((t >= starts - tol) & (t <= ends + tol)).astype(dtype)  # (n_windows,)
+
+    def add(total, e, f):
+        e = f(e.astype(dtype))
+        return total + w.reshape((-1,) + (1,) * e.ndim) * e[None]
+
+    return WindowMoments(acc.count + w,
+                         {k: add(acc.sum_abs[k], errors[k], jnp.abs) for k in acc.sum_abs},
+                         {k: add(acc.sum_sq[k], errors[k], jnp.square) for k in acc.sum_sq})
+
+
+def moments_summary(acc: WindowMoments, windows) -> Dict[str, jax.Array]:
+    """Per-run ``mae_{window}_{error}`` and ``rmse_{window}_{error}`` (shape of the error; NaN for an empty
+    window)."""
+    out = {}
+    for i, (name, _, _) in enumerate(windows):
+        n = acc.count[i]
+        inv = jnp.where(n > 0, 1.0 / jnp.maximum(n, 1.0), jnp.nan)
+        for k in acc.sum_abs:
+            out[f"mae_{name}_{k}"] = acc.sum_abs[k][i] * inv
+            out[f"rmse_{name}_{k}"] = jnp.sqrt(acc.sum_sq[k][i] * inv)
     return out

@@ -23,7 +23,11 @@ from .integrate import Interval
 from .observers.base import ImuSample, Observer
 from .sim import imu
 
-__all__ = ["run", "simulate", "simulate_log", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys"]
+__all__ = ["run", "simulate", "simulate_log", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys",
+           "INIT_PARAMS_BLOCK"]
+
+#: fold_in index of a run's key for its ``init_params`` draw (noise uses 0 ... and imu.INIT_BLOCK = 2**31 - 1).
+INIT_PARAMS_BLOCK = 2**31 - 2
 
 
 def check_dt(dt) -> float:
@@ -40,7 +44,7 @@ def _check_samples(samples: ImuSample):
     if np.shape(samples.t) != (g[0],):
         raise ValueError(f"samples.t must have shape (T,) = ({g[0]},), got {np.shape(samples.t)}")
     for name in ("acc", "mag"):
-        v = getattr(samples, name)
+        v = getattr(samples, name, None)
         if v is not None and np.shape(v) != g:
             raise ValueError(f"samples.{name} must have the shape of gyr {g}, got {np.shape(v)}")
     if g[0] < 2:
@@ -112,11 +116,13 @@ def _cast(tree, dtype):
 
 
 def _make_batch_fn(scenario, observer: Observer, params, *, n_steps: int, dt: float, errors_fn: ErrorsFn,
-                   window_start: float, hold: str, trace_every: int, trace_fn, obs_dtype, sim_dtype):
+                   window_start: float, hold: str, trace_every: int, trace_fn, obs_dtype, sim_dtype,
+                   windows: tuple = (), init_params=None):
     """Build ``batch_run(keys) -> (summary, trace, final_state)`` for a batch of run keys (scenario and
     params closed over; :func:`_batch_fn_jit` is the cached, jitted form that takes them as arguments)."""
     fn = _batch_fn(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=window_start, hold=hold,
-                   trace_every=trace_every, trace_fn=trace_fn, obs_dtype=obs_dtype, sim_dtype=sim_dtype)
+                   trace_every=trace_every, trace_fn=trace_fn, obs_dtype=obs_dtype, sim_dtype=sim_dtype,
+                   windows=windows, init_params=init_params)
     return lambda keys: fn(scenario, params, keys)
 
 
@@ -128,8 +134,13 @@ def _batch_fn_jit(observer: Observer, **static):
 
 
 def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsFn, window_start: float, hold: str,
-              trace_every: int, trace_fn, obs_dtype, sim_dtype):
+              trace_every: int, trace_fn, obs_dtype, sim_dtype, windows: tuple = (), init_params=None):
     """``batch_run(scenario, params, keys) -> (summary, trace, final_state)`` for a batch of run keys.
+
+    ``windows`` (((name, start_s, end_s), ...)) adds per-run MAE and RMSE of every named error over each window
+    (:func:`jaxatt.metrics.moments_summary`). ``init_params(params, key) -> params`` (optional) gives each run
+    its own parameters for ``observer.init`` only (e.g. a random initial estimate), from a key of the run
+    (``fold_in(run_key, INIT_PARAMS_BLOCK)``) that no noise stream uses.
 
     The scenario provides the simulator interface ``n_channels``, ``truth_at(r, t)``, ``propagate(r, t, dt)``
     and ``sample(truth, noise, dt)`` (see :class:`jaxatt.sim.imu.ImuScenario`); its truth has ``t`` and ``r``.
@@ -153,16 +164,20 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
         def init_one(key):
             truth0 = scn.truth_at(scn.r0, jnp.zeros((), sim_dtype))
             s0 = _cast(scn.sample(truth0, imu.initial_noise(key, sim_dtype, nch), dt), obs_dtype)
-            st0 = observer.init(p, s0)
+            if init_params is None:
+                st0 = observer.init(p, s0)
+            else:
+                st0 = observer.init(_cast(init_params(p, jax.random.fold_in(key, INIT_PARAMS_BLOCK)), obs_dtype), s0)
 
             def probe():
                 _, out = observer.step(p, st0, s0, dt_obs)
                 return errors_fn(truth0, out)
 
             err_shapes = {k: v.shape for k, v in jax.eval_shape(probe).items()}
-            return scn.r0, s0, st0, M.window_init(err_shapes, obs_dtype)
+            mom = M.moments_init(err_shapes, len(windows), obs_dtype) if windows else None
+            return scn.r0, s0, st0, M.window_init(err_shapes, obs_dtype), mom
 
-        def step_one(k, r, s_prev, st, acc, noise):
+        def step_one(k, r, s_prev, st, acc, mom, noise):
             t_k = k.astype(sim_dtype) * dt
             t_next = (k + 1).astype(sim_dtype) * dt
             r_next = scn.propagate(r, t_k, dt)
@@ -173,16 +188,18 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
             errors = errors_fn(truth, out)
             angle = M.angle_error_deg(truth.r.astype(obs_dtype), out.r)
             acc = M.window_update(acc, errors, angle, t_next >= window_start)
+            if windows:
+                mom = M.moments_update(mom, errors, t_next, windows, 0.5 * dt)
             rec = trace_fn(truth, out, errors, angle) if trace_every else None
-            return r_next, s_next, st, acc, rec
+            return r_next, s_next, st, acc, mom, rec
 
-        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1), out_axes=-1)
+        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1, -1), out_axes=-1)
         carry = (jnp.zeros((), jnp.int32),) + jax.vmap(init_one, out_axes=-1)(keys)  # keys: (B, 2)
 
         def step(carry, noise):
             k = carry[0]
-            r, s, st, acc, rec = step_b(*carry, noise)
-            return (k + 1, r, s, st, acc), rec
+            r, s, st, acc, mom, rec = step_b(*carry, noise)
+            return (k + 1, r, s, st, acc, mom), rec
 
         def block(carry, j, length):
             noise = jax.vmap(lambda key: imu.noise_block(key, j, sim_dtype, nch)[:length], out_axes=-1)(keys)
@@ -201,6 +218,9 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
             if trace_every:
                 traces.append(rec)
         summary = jax.vmap(M.window_summary, **bl)(carry[4])
+        if windows:
+            mom = jax.vmap(lambda m: M.moments_summary(m, windows), **bl)(carry[5])
+            summary.update({k: jnp.moveaxis(v, -1, 0) for k, v in mom.items()})  # runs first, as the scalars
         trace = None
         if trace_every:
             trace = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, 0), *traces) if len(traces) > 1 else traces[0]
@@ -209,6 +229,17 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
         return summary, trace, state
 
     return batch_run
+
+
+def _extras(windows, init_params) -> dict:
+    """Static extras of the batch runner, only when used (so the cache key and graph of existing calls are
+    unchanged)."""
+    ex = {}
+    if windows:
+        ex["windows"] = M.check_windows(windows)
+    if init_params is not None:
+        ex["init_params"] = init_params
+    return ex
 
 
 def run_keys(seed: int, run_indices) -> jax.Array:
@@ -225,21 +256,22 @@ def _dtypes(dtype):
 
 def simulate(scenario, observer: Observer, params, *, duration: float, dt: float, seed: int = 0, run_index: int = 0,
              errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", trace_every: int = 1,
-             trace_fn=None, dtype=None):
+             trace_fn=None, dtype=None, windows=(), init_params=None):
     """One simulated run; returns (summary dict, trace dict of arrays, final observer state).
 
     ``trace_fn(truth, out, errors, angle_deg) -> dict`` picks what is recorded every ``trace_every`` steps
-    (default: time, angle error, error norms).
+    (default: time, angle error, error norms). ``windows`` and ``init_params`` as in :func:`monte_carlo`.
     """
     dt = check_dt(dt)
     n_steps = int(round(duration / dt))
     obs_dtype, sim_dtype = _dtypes(dtype)
     fn = _batch_fn_jit(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
                        hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
-                       sim_dtype=sim_dtype)
+                       sim_dtype=sim_dtype, **_extras(windows, init_params))
     summary, trace, state = fn(scenario, params, run_keys(seed, [run_index]))
     first = lambda a: np.asarray(a)[0]  # noqa: E731
-    return ({k: float(first(v)) for k, v in summary.items()},
+    scalar = lambda a: float(first(a)) if np.ndim(a) == 1 else first(a)  # noqa: E731
+    return ({k: scalar(v) for k, v in summary.items()},
             jax.tree_util.tree_map(first, trace) if trace is not None else None,
             jax.tree_util.tree_map(lambda a: a[0], state))
 
@@ -291,8 +323,16 @@ class MonteCarloResult(NamedTuple):
 def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: float, dt: float, seed: int = 0,
                 errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", chunk: int = 250,
                 trace_every: int = 0, trace_fn=None, dtype=None, validate: Optional[Callable] = None,
-                on_chunk: Optional[Callable[[MonteCarloResult], None]] = None) -> MonteCarloResult:
+                on_chunk: Optional[Callable[[MonteCarloResult], None]] = None, windows=(),
+                init_params: Optional[Callable] = None) -> MonteCarloResult:
     """``runs`` simulated runs, vmapped in chunks of ``chunk`` runs, metrics reduced on the fly.
+
+    ``windows`` = ((name, start_s, end_s), ...): per-run ``mae_{name}_{error}`` and ``rmse_{name}_{error}`` of
+    every error of ``errors_fn`` over the samples with start_s <= t <= end_s (shape of the error).
+    ``init_params(params, key) -> params``: per-run parameters for ``observer.init`` only (e.g. a random initial
+    estimate drawn from ``key``); must be a hashable callable (a module-level function), the jitted runner is
+    cached on it. Run k's key is the same for every observer, so observers compared on the same seed see the
+    same noise and the same initial estimates.
 
     After each chunk ``on_chunk(partial_result)`` is called (save, progress). On KeyboardInterrupt the runs
     finished so far are returned with ``complete=False``: nothing computed is lost.
@@ -313,7 +353,7 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
     chunk = max(1, min(chunk, runs))
     fn = _batch_fn_jit(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
                        hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
-                       sim_dtype=sim_dtype)
+                       sim_dtype=sim_dtype, **_extras(windows, init_params))
     batched = lambda k: fn(scenario, params, k)[:2]  # noqa: E731 (the final states are dropped by the caller)
     per_run: Dict[str, list] = {}
     traces: Dict[str, list] = {}
