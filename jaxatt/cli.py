@@ -125,6 +125,40 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--vector-noise", type=_nonneg, default=0.0, help="noise per component of the unit vectors")
     _common(sp)
 
+    tp = sub.add_parser("tune", help="tune an experiment's gains by gradient descent through the Monte Carlo scan")
+    tp.add_argument("--experiment", required=True, help="batista-ges, batista-so3, ... (see jaxatt.tune)")
+    tp.add_argument("--steps", type=int, default=100, help="optimiser steps")
+    tp.add_argument("--train-runs", type=int, default=32, help="training seeds (at most 64 in the acceptance study)")
+    tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
+    tp.add_argument("--seed", type=int, default=0)
+    tp.add_argument("--lr", type=_positive, default=0.05)
+    tp.add_argument("--out", default="gains.json", help="gains + history JSON, rewritten as the loop goes")
+    tp.add_argument("--quiet", action="store_true")
+
+    vp = sub.add_parser("evaluate", help="Monte Carlo of an experiment with a gains file (same JSON as reproduce)")
+    vp.add_argument("--experiment", required=True)
+    vp.add_argument("--gains", default=None, help="gains JSON from jaxatt tune (default: the paper's gains)")
+    vp.add_argument("--runs", type=_runs, default=100)
+    vp.add_argument("--seed", type=int, default=1)
+    vp.add_argument("--duration", type=_positive, default=None)
+    vp.add_argument("--json", default=None)
+    vp.add_argument("--quiet", action="store_true")
+
+    bp = sub.add_parser("broad", help="run an observer on BROAD trials and print the BROAD metric")
+    bp.add_argument("--data-dir", required=True, help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
+    bp.add_argument("--observer", default="robust", help="robust, mahony, complementary, ...")
+    bp.add_argument("--gains", default=None, help="gains JSON from jaxatt broad-tune (default: shipped gains)")
+    bp.add_argument("--trials", nargs="*", default=None, help="trial names or numbers (default: all)")
+    bp.add_argument("--json", default=None)
+    bp.add_argument("--float32", action="store_true")
+
+    bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials")
+    bt.add_argument("--data-dir", required=True)
+    bt.add_argument("--observer", default="robust")
+    bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
+    bt.add_argument("--steps", type=int, default=150)
+    bt.add_argument("--out", default="gains.json")
+
     ep = sub.add_parser("excitation", help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
                                            "Lemmas 3.4, 4.2, conditions 6, 13) of a scenario or a log")
     src = ep.add_mutually_exclusive_group(required=True)
@@ -363,8 +397,45 @@ def _reproduce_nlio(args, name: str) -> int:
     return 0
 
 
+def _tools(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    if args.command == "tune":
+        from . import tune
+
+        tune.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=args.out, seed=args.seed,
+                  lr=args.lr, duration=args.duration, quiet=args.quiet)
+        print(f"gains written to {args.out}")
+        return 0
+    if args.command == "evaluate":
+        from . import tune
+
+        tune.evaluate(args.experiment, args.gains, runs=args.runs, seed=args.seed, json_path=args.json,
+                      duration=args.duration, quiet=args.quiet)
+        return 0
+    from . import broad_tune
+
+    if args.command == "broad":
+        broad_tune.broad_eval(args.data_dir, args.observer, gains_path=args.gains, json_path=args.json,
+                              trials=args.trials, dtype="float32" if args.float32 else "float64")
+        return 0
+    broad_tune.broad_tune(args.data_dir, args.observer, trials=args.trials, out_path=args.out, steps=args.steps)
+    print(f"gains written to {args.out}")
+    return 0
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command in ("tune", "evaluate", "broad", "broad-tune"):
+        try:
+            return _tools(args)
+        except ValueError as e:
+            print(f"jaxatt: error: {e}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("jaxatt: interrupted (what was found so far is saved)", file=sys.stderr)
+            return 130
     if args.command == "excitation":
         try:
             return _excitation(args)

@@ -1,0 +1,419 @@
+"""Constrained parametrizations of observer gains, for gradient-based tuning (:mod:`jaxatt.tune`).
+
+An optimizer moves an unconstrained vector ``u``; a :class:`Transform` maps it to a gain that is always valid:
+
+* :class:`Positive`: x = scale * exp(u) (``"log"``) or x = scale * softplus(u) (``"softplus"``), elementwise.
+  With the log map Adam's steps are relative changes (a step of 0.05 changes a gain by about 5 %), whatever
+  the gain's unit or size (the batista-so3 gains span 1e-23 ... 1e-1).
+* :class:`Schedule`: a piecewise-constant gain (Table 1 of batista2019-ges / -so3) as a positive vector, one
+  value per interval; the switch times stay fixed (they are another field of the Params, never tuned).
+* :class:`SPD`: a symmetric positive-definite matrix (a gain matrix Q, Kp, a covariance) as
+  G = S C C^T S, C lower-triangular with a positive (exp) diagonal, S = diag(scale) fixed (by default the
+  square roots of the initial diagonal, so C = I for a diagonal initial G and the off-diagonal entries of C
+  are dimensionless). ``structure="diagonal"`` keeps the off-diagonal entries of C at their initial values.
+* :class:`Bounded`: low + (high - low) * sigmoid(u), for gains in an open interval (e.g. a threshold in (0, 1)).
+* :class:`Identity`: unconstrained.
+
+A :class:`Parametrization` is a set of transforms for some fields of a ``Params`` NamedTuple (any observer:
+the code only uses ``_replace`` and field names), plus optional masks that freeze chosen elements. Fields
+without a transform are never touched. Its :meth:`Parametrization.bind` takes the starting params and
+returns a bound copy that maps ``theta`` (a dict field -> unconstrained array, a pytree for optax) to params
+with :meth:`BoundParametrization.constrain`; frozen elements get exactly zero gradient.
+
+Per-experiment descriptions (which fields of which Params are gains, their transforms, units and meaning)
+live in :data:`GAINS`; :func:`register_gains` adds an experiment (e.g. the AHRS observers of
+sensors2020-interconnected-observer), :func:`for_experiment` builds its Parametrization.
+
+Conventions: gains keep the units of the observer's Params (SI; the vector-sensor unit of the scenario, nT
+for the Batista papers); every :class:`Gain` names its unit.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable, Dict, Mapping, NamedTuple, Optional, Sequence, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "Parametrization",
+           "BoundParametrization", "Gain", "GAINS", "register_gains", "gains_of", "for_experiment",
+           "schedule_mask", "softplus_inverse"]
+
+
+def softplus_inverse(y):
+    """u with softplus(u) = y (y > 0), stable for small and large y."""
+    y = np.asarray(y, float)
+    return np.where(y > 30.0, y, np.log(np.expm1(np.minimum(y, 30.0))))
+
+
+# ------------------------------------------------------------------------------------------------------
+# Transforms
+# ------------------------------------------------------------------------------------------------------
+class Transform:
+    """Base class: ``bind(value) -> Transform`` (fixes reference scales from a starting value),
+    ``inverse(value) -> u`` (numpy, concrete), ``forward(u) -> value`` (jax, differentiable)."""
+
+    def bind(self, value) -> "Transform":
+        return self
+
+    def inverse(self, value) -> np.ndarray:
+        raise NotImplementedError
+
+    def forward(self, u):
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        return type(self).__name__
+
+
+@dataclasses.dataclass(frozen=True)
+class Identity(Transform):
+    """x = u (no constraint)."""
+
+    def inverse(self, value):
+        return np.asarray(value, float)
+
+    def forward(self, u):
+        return u
+
+    def describe(self):
+        return "unconstrained"
+
+
+@dataclasses.dataclass(frozen=True)
+class Positive(Transform):
+    """Elementwise positive: x = scale * exp(u) (method "log") or scale * softplus(u) (method "softplus").
+
+    ``scale``: None picks 1 for "log" (u = log x) and the starting value for "softplus" (so the start is
+    u = softplus^-1(1) = 0.54, where the map is neither flat nor linear); a number or array fixes it.
+    """
+
+    method: str = "log"
+    scale: Any = None
+
+    def __post_init__(self):
+        if self.method not in ("log", "softplus"):
+            raise ValueError(f"Positive.method must be 'log' or 'softplus', got {self.method!r}")
+
+    def bind(self, value):
+        if self.scale is not None:
+            return self
+        v = np.asarray(value, float)
+        if self.method == "log":
+            return dataclasses.replace(self, scale=1.0)
+        return dataclasses.replace(self, scale=np.where(v > 0, v, 1.0))
+
+    def inverse(self, value):
+        v = np.asarray(value, float)
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"a Positive gain must be finite and > 0, got {v}")
+        s = np.asarray(1.0 if self.scale is None else self.scale, float)
+        return np.log(v / s) if self.method == "log" else softplus_inverse(v / s)
+
+    def forward(self, u):
+        s = 1.0 if self.scale is None else jnp.asarray(self.scale, u.dtype)
+        return s * (jnp.exp(u) if self.method == "log" else jax.nn.softplus(u))
+
+    def describe(self):
+        return f"positive ({self.method})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule(Positive):
+    """Piecewise-constant positive gain: one value per interval (elementwise :class:`Positive`); the switch
+    times (``times_field`` of the Params) are fixed. Freeze chosen intervals with :func:`schedule_mask`."""
+
+    times_field: str = "switch_times"
+
+    def describe(self):
+        return f"piecewise-constant schedule, positive ({self.method}), switch times fixed ({self.times_field})"
+
+
+@dataclasses.dataclass(frozen=True)
+class SPD(Transform):
+    """Symmetric positive-definite n x n matrix G = S C C^T S, C lower-triangular with exp'd diagonal.
+
+    u holds the n (n + 1) / 2 entries of C's lower triangle, row-major (``np.tril_indices``), with the
+    diagonal entries as logarithms. ``scale`` (n,) fixes S; None takes sqrt(diag(G0)) at :meth:`bind`.
+    ``structure="diagonal"``: only the diagonal is tunable (the off-diagonal entries of u are masked by
+    :class:`Parametrization`, G stays diagonal if it starts diagonal).
+    """
+
+    scale: Any = None
+    structure: str = "full"
+
+    def __post_init__(self):
+        if self.structure not in ("full", "diagonal"):
+            raise ValueError(f"SPD.structure must be 'full' or 'diagonal', got {self.structure!r}")
+
+    def bind(self, value):
+        if self.scale is not None:
+            return self
+        g = np.asarray(value, float)
+        return dataclasses.replace(self, scale=np.sqrt(np.abs(np.diag(g))))
+
+    def inverse(self, value):
+        g = np.asarray(value, float)
+        if g.ndim != 2 or g.shape[0] != g.shape[1]:
+            raise ValueError(f"an SPD gain must be a square matrix, got shape {g.shape}")
+        s = np.asarray(self.bind(g).scale, float)
+        gs = 0.5 * (g + g.T) / np.outer(s, s)
+        try:
+            c = np.linalg.cholesky(gs)
+        except np.linalg.LinAlgError as e:
+            raise ValueError("an SPD gain must be symmetric positive definite") from e
+        n = g.shape[0]
+        i, j = np.tril_indices(n)
+        u = c[i, j].copy()
+        d = i == j
+        u[d] = np.log(c[i[d], j[d]])
+        return u
+
+    def forward(self, u):
+        m = u.shape[-1]
+        n = int(round((math.isqrt(8 * m + 1) - 1) / 2))
+        i, j = np.tril_indices(n)
+        d = i == j
+        vals = jnp.where(jnp.asarray(d), jnp.exp(jnp.where(jnp.asarray(d), u, 0.0)), u)
+        c = jnp.zeros((n, n), u.dtype).at[i, j].set(vals)
+        s = jnp.ones(n, u.dtype) if self.scale is None else jnp.asarray(self.scale, u.dtype)
+        cs = s[:, None] * c
+        return cs @ cs.T
+
+    @staticmethod
+    def diagonal_mask(n: int) -> np.ndarray:
+        """Mask over u that is True on the diagonal entries of C only."""
+        i, j = np.tril_indices(n)
+        return i == j
+
+    def describe(self):
+        return f"symmetric positive definite (scaled Cholesky, {self.structure})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Bounded(Transform):
+    """x = low + (high - low) * sigmoid(u), elementwise, in the open interval (low, high)."""
+
+    low: float = 0.0
+    high: float = 1.0
+
+    def inverse(self, value):
+        v = np.asarray(value, float)
+        f = (v - self.low) / (self.high - self.low)
+        if np.any(f <= 0) or np.any(f >= 1):
+            raise ValueError(f"a Bounded gain must lie in ({self.low}, {self.high}), got {v}")
+        return np.log(f) - np.log1p(-f)
+
+    def forward(self, u):
+        return self.low + (self.high - self.low) * jax.nn.sigmoid(u)
+
+    def describe(self):
+        return f"bounded in ({self.low:g}, {self.high:g}) (sigmoid)"
+
+
+def schedule_mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:
+    """Boolean mask (True = tunable) over the ``n_intervals`` values of a :class:`Schedule`; negative
+    indices count from the end (``[-1]`` tunes the last interval only, i.e. the steady-state gain)."""
+    m = np.zeros(n_intervals, bool)
+    m[np.asarray(list(tunable), int)] = True
+    return m
+
+
+# ------------------------------------------------------------------------------------------------------
+# Parametrization of a Params NamedTuple
+# ------------------------------------------------------------------------------------------------------
+class BoundParametrization(NamedTuple):
+    """A :class:`Parametrization` bound to starting params: transforms with their reference scales fixed,
+    the starting unconstrained values ``theta0`` and the masks (True = tunable) over them."""
+
+    transforms: Dict[str, Transform]
+    masks: Dict[str, np.ndarray]
+    theta0: Dict[str, np.ndarray]
+    base: Any
+
+    def constrain(self, theta: Mapping[str, jax.Array], base=None):
+        """Params with the tunable fields replaced by ``transform.forward(theta[field])``; masked-out
+        elements keep their starting values with zero gradient (exactly the values of ``base`` for the
+        elementwise transforms; an :class:`SPD` rebuilds G from the frozen Cholesky entries, to rounding).
+        ``base`` (default: the bound params) supplies every other field."""
+        base = self.base if base is None else base
+        new = {}
+        for f, tr in self.transforms.items():
+            u = jnp.asarray(theta[f])
+            ref = jnp.asarray(getattr(base, f))
+            m = self.masks.get(f)
+            if m is not None and not np.all(m):
+                mj = jnp.asarray(m)
+                v = tr.forward(jnp.where(mj, u, jnp.asarray(self.theta0[f], u.dtype))).astype(ref.dtype)
+                # elementwise transforms: frozen elements are the base values exactly (no exp/log round trip)
+                new[f] = jnp.where(mj, v, ref) if v.shape == mj.shape == ref.shape else v
+            else:
+                new[f] = tr.forward(u).astype(ref.dtype)
+        return base._replace(**new)
+
+    def unconstrain(self, params) -> Dict[str, np.ndarray]:
+        """theta (numpy) of concrete params."""
+        return {f: np.asarray(tr.inverse(np.asarray(getattr(params, f))), float) for f, tr in self.transforms.items()}
+
+    def init(self, dtype=None) -> Dict[str, jax.Array]:
+        """The starting theta as jax arrays."""
+        return {f: jnp.asarray(v, dtype or jnp.result_type(float)) for f, v in self.theta0.items()}
+
+    def zero_frozen(self, grads):
+        """Gradients with the masked-out elements set to exactly zero (constrain already does this; this is
+        for gradients computed some other way)."""
+        out = dict(grads)
+        for f, m in self.masks.items():
+            if f in out and not np.all(m):
+                out[f] = jnp.where(jnp.asarray(m), out[f], 0.0)
+        return out
+
+    def n_free(self) -> int:
+        """Number of tunable scalars."""
+        return int(sum(int(np.sum(self.masks[f])) if f in self.masks else int(np.size(v))
+                       for f, v in self.theta0.items()))
+
+
+@dataclasses.dataclass(frozen=True)
+class Parametrization:
+    """Transforms for chosen fields of a Params NamedTuple, and masks that freeze chosen elements.
+
+    Args:
+        transforms: field name -> :class:`Transform`. Fields not named are fixed.
+        masks: field name -> boolean array over that field's unconstrained vector (True = tunable). For a
+            :class:`Positive` / :class:`Schedule` it has the gain's shape; for an :class:`SPD` it is over the
+            n (n + 1) / 2 Cholesky entries.
+    """
+
+    transforms: Mapping[str, Transform]
+    masks: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def freeze(self, *fields: str) -> "Parametrization":
+        """A copy with ``fields`` fixed (removed from the tunable set)."""
+        bad = [f for f in fields if f not in self.transforms]
+        if bad:
+            raise ValueError(f"cannot freeze {bad}: not tunable here (tunable: {sorted(self.transforms)})")
+        return Parametrization({k: v for k, v in self.transforms.items() if k not in fields},
+                               {k: v for k, v in self.masks.items() if k not in fields})
+
+    def only(self, *fields: str) -> "Parametrization":
+        """A copy where only ``fields`` are tunable."""
+        bad = [f for f in fields if f not in self.transforms]
+        if bad:
+            raise ValueError(f"unknown tunable fields {bad} (tunable: {sorted(self.transforms)})")
+        return self.freeze(*[f for f in self.transforms if f not in fields])
+
+    def with_mask(self, field: str, mask) -> "Parametrization":
+        if field not in self.transforms:
+            raise ValueError(f"{field!r} is not tunable here (tunable: {sorted(self.transforms)})")
+        return Parametrization(dict(self.transforms), {**self.masks, field: np.asarray(mask, bool)})
+
+    def bind(self, params) -> BoundParametrization:
+        """Fix reference scales from ``params`` (concrete) and compute the starting theta."""
+        missing = [f for f in self.transforms if f not in params._fields]
+        if missing:
+            raise ValueError(f"fields {missing} are not in {type(params).__name__} (fields: {params._fields})")
+        trs, th0, masks = {}, {}, {}
+        for f, tr in self.transforms.items():
+            v = np.asarray(getattr(params, f), float)
+            trs[f] = tr.bind(v)
+            th0[f] = np.asarray(trs[f].inverse(v), float)
+            m = self.masks.get(f)
+            if m is None and isinstance(tr, SPD) and tr.structure == "diagonal":
+                m = SPD.diagonal_mask(v.shape[0])
+            if m is not None:
+                m = np.broadcast_to(np.asarray(m, bool), th0[f].shape).copy()
+                masks[f] = m
+        return BoundParametrization(trs, masks, th0, params)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Per-experiment descriptions of the gains
+# ------------------------------------------------------------------------------------------------------
+class Gain(NamedTuple):
+    """One tunable field of an observer's Params: its transform, unit and meaning.
+
+    ``rate``: optional ``(label, fn(params) -> factor)``; ``value * factor`` is shown next to the value in
+    the gains JSON (e.g. alpha1 |I_m|^2 in 1/s for a gain whose own unit is 1/(s nT^2)).
+    """
+
+    field: str
+    transform: Transform
+    unit: str
+    doc: str
+    rate: Optional[Tuple[str, Callable[[Any], Any]]] = None
+
+
+def _norm2(v):
+    v = np.asarray(v, float)
+    return float(v @ v)
+
+
+def _iv_norm2(p):
+    m, w = np.asarray(p.ref_nav, float), np.asarray(p.earth_rate_nav, float)
+    return _norm2(np.cross(m, np.cross(m, w)))
+
+
+GAINS: Dict[str, Tuple[Gain, ...]] = {
+    "batista-ges": (
+        Gain("alpha1", Schedule("log"), "1/s",
+             "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)"),
+        Gain("alpha2", Schedule("log"), "1/s^2",
+             "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)"),
+        Gain("gain_z", SPD(), "1/s",
+             "z-space attitude gain G = C2^T Q^-1 C2 of eq. (21), 9x9 SPD acting on z2 = rows of R stacked"),
+    ),
+    "batista-so3": (
+        Gain("alpha1", Schedule("log"), "1/(s unit^2)", "gain of eq. (9), one value per Table-1 interval",
+             ("alpha1 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+        Gain("alpha2", Schedule("log"), "1/s", "gain of eq. (9), one value per Table-1 interval"),
+        Gain("alpha0", Positive("log"), "1/(s unit^2)", "gain of eq. (9) (damping of v^ along m)",
+             ("alpha0 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+        Gain("alpha3", Positive("log"), "1/(s unit^2)", "attitude gain of eq. (16) on the vector I_m",
+             ("alpha3 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+        Gain("alpha4", Positive("log"), "1/(s unit^4 (rad/s)^2)", "attitude gain of eq. (16) on I_v",
+             ("alpha4 |I_v|^2 (1/s)", _iv_norm2)),
+    ),
+}
+
+
+def register_gains(experiment: str, gains: Sequence[Gain]) -> None:
+    """Declare the tunable gains of an experiment (e.g. ``"nlio-case1"``: Kp as :class:`SPD`, k1, k2 as
+    :class:`Positive`); :func:`for_experiment` and :mod:`jaxatt.tune` then use them."""
+    gains = tuple(gains)
+    names = [g.field for g in gains]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate gain fields {names}")
+    GAINS[experiment] = gains
+
+
+def gains_of(experiment: str) -> Tuple[Gain, ...]:
+    try:
+        return GAINS[experiment]
+    except KeyError:
+        raise ValueError(f"no tunable gains declared for {experiment!r} (known: {sorted(GAINS)}); "
+                         "declare them with jaxatt.parametrize.register_gains") from None
+
+
+def for_experiment(experiment: str, *, freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None,
+                   masks: Optional[Mapping[str, Any]] = None,
+                   method: Optional[str] = None) -> Parametrization:
+    """The Parametrization of an experiment's gains (:data:`GAINS`), with chosen fields frozen or only some
+    tunable, optional masks (field -> bool array over its unconstrained vector, True = tunable), and
+    ``method`` ("log" / "softplus") overriding the map of every positive gain."""
+    trs = {}
+    for g in gains_of(experiment):
+        tr = g.transform
+        if method is not None and isinstance(tr, Positive):
+            tr = dataclasses.replace(tr, method=method)
+        trs[g.field] = tr
+    p = Parametrization(trs)
+    if only is not None:
+        p = p.only(*only)
+    if freeze:
+        p = p.freeze(*freeze)
+    for f, m in (masks or {}).items():
+        p = p.with_mask(f, m)
+    return p

@@ -1,0 +1,169 @@
+"""Constrained parametrizations (jaxatt.parametrize) and the gains JSON of jaxatt.tune: every theta gives a
+valid gain, round trips are exact, masks freeze exactly, gradients are finite. No simulation: fast."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxatt import parametrize as P
+from jaxatt import tune as T
+from jaxatt.experiments import batista_ges, batista_so3
+
+
+def ges_params():
+    return batista_ges.params(batista_ges.Config(), dtype=jnp.float64)
+
+
+def so3_params():
+    return batista_so3.params(batista_so3.Config(), dtype=jnp.float64)
+
+
+def random_spd(n, rng, cond=1e3):
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return q @ np.diag(np.geomspace(1.0, 1.0 / cond, n)) @ q.T
+
+
+@pytest.mark.parametrize("method", ["log", "softplus"])
+def test_positive_round_trip_and_range(method):
+    x = np.array([1e-23, 3e-9, 0.5, 7.0, 2e4])
+    tr = P.Positive(method).bind(x)
+    u = tr.inverse(x)
+    np.testing.assert_allclose(np.asarray(tr.forward(jnp.asarray(u))), x, rtol=1e-12)
+    y = np.asarray(jax.vmap(tr.forward)(jnp.linspace(-30.0, 30.0, 101)[:, None] + jnp.asarray(u)))
+    assert np.all(y > 0) and np.all(np.isfinite(y))
+    g = jax.grad(lambda v: jnp.sum(tr.forward(v)))(jnp.asarray(u))
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g) > 0)
+    with pytest.raises(ValueError):
+        tr.inverse(np.array([1.0, -1.0, 1.0, 1.0, 1.0]))
+
+
+def test_spd_round_trip_and_every_theta_is_spd():
+    rng = np.random.default_rng(0)
+    g0 = random_spd(9, rng)
+    tr = P.SPD().bind(g0)
+    u = tr.inverse(g0)
+    assert u.shape == (45,)
+    np.testing.assert_allclose(np.asarray(tr.forward(jnp.asarray(u))), g0, rtol=1e-10, atol=1e-14)
+    for _ in range(5):
+        g = np.asarray(tr.forward(jnp.asarray(rng.normal(scale=1.0, size=45))))
+        np.testing.assert_allclose(g, g.T, rtol=0, atol=0)
+        assert np.min(np.linalg.eigvalsh(g)) > 0
+    jac = jax.jacfwd(tr.forward)(jnp.asarray(u))
+    assert np.all(np.isfinite(np.asarray(jac)))
+    # the paper's diagonal G of batista-ges: C = I, u = 0 (scale = sqrt of the diagonal)
+    gz = np.asarray(ges_params().gain_z)
+    np.testing.assert_allclose(P.SPD().bind(gz).inverse(gz), 0.0, atol=1e-12)
+    with pytest.raises(ValueError):
+        P.SPD().inverse(-np.eye(3))
+
+
+def test_spd_diagonal_structure_stays_diagonal():
+    p = ges_params()
+    bound = P.Parametrization({"gain_z": P.SPD(structure="diagonal")}).bind(p)
+    th = {"gain_z": bound.init()["gain_z"] + 0.3}
+    g = np.asarray(bound.constrain(th).gain_z)
+    np.testing.assert_allclose(g, np.diag(np.diag(g)), atol=0)
+    np.testing.assert_allclose(np.diag(g), np.diag(np.asarray(p.gain_z)) * np.exp(0.6), rtol=1e-12)
+    assert bound.n_free() == 9
+
+
+def test_bounded_round_trip():
+    tr = P.Bounded(0.0, 1.0)
+    x = np.array([1e-6, 0.5, 0.999])
+    np.testing.assert_allclose(np.asarray(tr.forward(jnp.asarray(tr.inverse(x)))), x, rtol=1e-9)
+    with pytest.raises(ValueError):
+        tr.inverse(np.array([1.0]))
+
+
+@pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
+def test_experiment_parametrization_round_trip(name, make):
+    p = make()
+    bound = P.for_experiment(name).bind(p)
+    back = bound.constrain(bound.init())
+    for f in p._fields:
+        np.testing.assert_allclose(np.asarray(getattr(back, f)), np.asarray(getattr(p, f)), rtol=1e-12, atol=1e-300)
+    # switch times and references are never tunable
+    assert "switch_times" not in bound.transforms and "ref_nav" not in bound.transforms
+    # any theta gives params the observer accepts
+    rng = np.random.default_rng(1)
+    th = {k: v + jnp.asarray(rng.normal(scale=2.0, size=v.shape)) for k, v in bound.init().items()}
+    (batista_ges.check_params if name == "batista-ges" else batista_so3.check_params)(bound.constrain(th))
+
+
+def test_masks_freeze_exactly_with_zero_gradient():
+    p = so3_params()
+    par = P.for_experiment("batista-so3", masks={"alpha1": P.schedule_mask(5, [-1]), "alpha0": False})
+    bound = par.bind(p)
+    assert bound.n_free() == 1 + 5 + 1 + 1  # last alpha1 interval, alpha2 (5), alpha3, alpha4
+    th = {k: v + 0.7 for k, v in bound.init().items()}
+    q = bound.constrain(th)
+    np.testing.assert_array_equal(np.asarray(q.alpha1[:4]), np.asarray(p.alpha1[:4]))
+    np.testing.assert_array_equal(np.asarray(q.alpha0), np.asarray(p.alpha0))
+    assert float(q.alpha1[4]) == pytest.approx(float(p.alpha1[4]) * np.exp(0.7), rel=1e-12)
+
+    def f(t):
+        c = bound.constrain(t)
+        return jnp.sum(c.alpha1 / p.alpha1) + c.alpha0 / p.alpha0 + c.alpha3 / p.alpha3
+
+    g = jax.grad(f)(th)
+    np.testing.assert_array_equal(np.asarray(g["alpha1"][:4]), 0.0)
+    assert float(g["alpha0"]) == 0.0 and float(g["alpha1"][4]) > 0 and float(g["alpha3"]) > 0
+    z = bound.zero_frozen({k: jnp.ones_like(v) for k, v in th.items()})
+    np.testing.assert_array_equal(np.asarray(z["alpha1"]), [0, 0, 0, 0, 1])
+
+
+def test_freeze_only_and_unknown_fields():
+    par = P.for_experiment("batista-ges", freeze=("gain_z",))
+    assert set(par.transforms) == {"alpha1", "alpha2"}
+    assert set(P.for_experiment("batista-ges", only=("gain_z",)).transforms) == {"gain_z"}
+    assert isinstance(P.for_experiment("batista-so3", method="softplus").transforms["alpha3"], P.Positive)
+    assert P.for_experiment("batista-so3", method="softplus").transforms["alpha3"].method == "softplus"
+    with pytest.raises(ValueError):
+        P.for_experiment("batista-ges", freeze=("epsilon",))
+    with pytest.raises(ValueError):
+        P.for_experiment("no-such-experiment")
+    with pytest.raises(ValueError):
+        P.Parametrization({"nope": P.Positive()}).bind(ges_params())
+
+
+def test_register_gains_for_a_new_experiment():
+    P.register_gains("_test-exp", [P.Gain("alpha0", P.Positive(), "1/s", "test gain")])
+    try:
+        bound = P.for_experiment("_test-exp").bind(so3_params())
+        assert set(bound.transforms) == {"alpha0"}
+        with pytest.raises(ValueError):
+            P.register_gains("_test-exp2", [P.Gain("a", P.Positive(), "", ""), P.Gain("a", P.Positive(), "", "")])
+    finally:
+        P.GAINS.pop("_test-exp", None)
+
+
+@pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
+def test_gains_json_round_trip(name, make, tmp_path):
+    p = make()
+    p = p._replace(alpha2=p.alpha2 * 0.5)
+    path = tmp_path / "g.json"
+    T.save_gains(str(path), name, p, extra={"note": "test"})
+    payload = json.loads(path.read_text())
+    assert payload["format"] == T.GAINS_FORMAT and payload["experiment"] == name and payload["note"] == "test"
+    a1 = payload["gains"]["alpha1"]
+    assert a1["intervals_s"][0][0] == 0.0 and a1["intervals_s"][-1][1] is None
+    assert len(a1["intervals_s"]) == len(a1["value"]) == len(a1["switch_times_s"]) + 1
+    assert all(isinstance(g["unit"], str) and g["doc"] for g in payload["gains"].values())
+    exp, q, _ = T.load_gains(str(path))
+    assert exp == name
+    for f in p._fields:
+        np.testing.assert_allclose(np.asarray(getattr(q, f)), np.asarray(getattr(p, f)), rtol=1e-15)
+    with pytest.raises(ValueError):
+        T.load_gains(str(path), experiment="batista-ges" if name != "batista-ges" else "batista-so3")
+    # a hand-edited file with a wrong shape, or an invalid gain, is refused
+    payload["gains"]["alpha2"]["value"] = payload["gains"]["alpha2"]["value"][:-1]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(payload))
+    with pytest.raises(ValueError):
+        T.load_gains(str(bad))
+    payload["gains"]["alpha2"]["value"] = [-1.0] * len(a1["value"])
+    bad.write_text(json.dumps(payload))
+    with pytest.raises(ValueError):
+        T.load_gains(str(bad))
