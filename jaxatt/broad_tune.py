@@ -160,7 +160,7 @@ def _spec_robust() -> ObserverSpec:
 
     bounds = dict(
         tau_acc=(0.05, 30.0), tau_acc_2=(1e-3, 30.0), tau_mag=(0.5, 200.0), tau_bias=(1.0, 1e4),
-        tau_bias_mag=(1.0, 1e5), tau_bias_rest=(0.1, 100.0), tau_rest=(0.05, 10.0), rest_hold=(0.05, 20.0),
+        tau_bias_rest=(0.1, 100.0), tau_rest=(0.05, 10.0), rest_hold=(0.05, 20.0),
         rest_th_gyr=(0.1 * _DEG, 20 * _DEG), rest_th_acc=(0.02, 5.0), acc_th=(0.5, 200.0), acc_hold=(0.005, 5.0),
         mag_norm_th=(0.01, 2.0), mag_dip_th=(0.5 * _DEG, 90 * _DEG), mag_hold=(0.01, 20.0),
         tau_mag_ref=(1.0, 1e4))

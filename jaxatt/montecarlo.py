@@ -19,6 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import metrics as M
+from . import progress as _progress
+from . import sharding as _sharding
 from .integrate import Interval
 from .observers.base import ImuSample, Observer
 from .sim import imu
@@ -127,20 +129,24 @@ def _make_batch_fn(scenario, observer: Observer, params, *, n_steps: int, dt: fl
 
 
 @functools.lru_cache(maxsize=64)
-def _batch_fn_jit(observer: Observer, **static):
-    """``jit(batch_run(scenario, params, keys))``, cached on the observer and every static setting, so calls
-    with new params, a new scenario of the same structure, or new seeds do not compile again."""
-    return jax.jit(_batch_fn(observer, **static))
+def _batch_fn_jit(observer: Observer, mesh=None, **static):
+    """``jit(batch_run(scenario, params, keys))``, cached on the observer, the device mesh (None: one device)
+    and every static setting, so calls with new params, a new scenario of the same structure, or new seeds do
+    not compile again. With a mesh the runs are split over its devices (:func:`jaxatt.sharding.shard_runs`)."""
+    return jax.jit(_sharding.shard_runs(_batch_fn(observer, **static), mesh))
 
 
 def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsFn, window_start: float, hold: str,
-              trace_every: int, trace_fn, obs_dtype, sim_dtype, windows: tuple = (), init_params=None):
+              trace_every: int, trace_fn, obs_dtype, sim_dtype, windows: tuple = (), init_params=None,
+              progress=False):
     """``batch_run(scenario, params, keys) -> (summary, trace, final_state)`` for a batch of run keys.
 
     ``windows`` (((name, start_s, end_s), ...)) adds per-run MAE and RMSE of every named error over each window
     (:func:`jaxatt.metrics.moments_summary`). ``init_params(params, key) -> params`` (optional) gives each run
     its own parameters for ``observer.init`` only (e.g. a random initial estimate), from a key of the run
-    (``fold_in(run_key, INIT_PARAMS_BLOCK)``) that no noise stream uses.
+    (``fold_in(run_key, INIT_PARAMS_BLOCK)``) that no noise stream uses. ``progress``: report every finished
+    noise block to :func:`jaxatt.progress.block_hook` (``jax.debug.callback``, ordered when "ordered" - one
+    device only -, unordered when "unordered"; nothing when False).
 
     The scenario provides the simulator interface ``n_channels``, ``truth_at(r, t)``, ``propagate(r, t, dt)``
     and ``sample(truth, noise, dt)`` (see :class:`jaxatt.sim.imu.ImuScenario`); its truth has ``t`` and ``r``.
@@ -204,6 +210,8 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
         def block(carry, j, length):
             noise = jax.vmap(lambda key: imu.noise_block(key, j, sim_dtype, nch)[:length], out_axes=-1)(keys)
             carry, rec = jax.lax.scan(step, carry, noise)  # rec: (length, ..., B)
+            if progress:
+                jax.debug.callback(_progress.block_hook, j, ordered=progress == "ordered")
             if trace_every:
                 rec = jax.tree_util.tree_map(lambda a: a[trace_every - 1 :: trace_every], rec)
             return carry, rec
@@ -231,10 +239,10 @@ def _batch_fn(observer: Observer, *, n_steps: int, dt: float, errors_fn: ErrorsF
     return batch_run
 
 
-def _extras(windows, init_params) -> dict:
+def _extras(windows, init_params, progress=False) -> dict:
     """Static extras of the batch runner, only when used (so the cache key and graph of existing calls are
     unchanged)."""
-    ex = {}
+    ex = {"progress": progress} if progress else {}
     if windows:
         ex["windows"] = M.check_windows(windows)
     if init_params is not None:
@@ -324,7 +332,7 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
                 errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", chunk: int = 250,
                 trace_every: int = 0, trace_fn=None, dtype=None, validate: Optional[Callable] = None,
                 on_chunk: Optional[Callable[[MonteCarloResult], None]] = None, windows=(),
-                init_params: Optional[Callable] = None) -> MonteCarloResult:
+                init_params: Optional[Callable] = None, devices=None, progress=None) -> MonteCarloResult:
     """``runs`` simulated runs, vmapped in chunks of ``chunk`` runs, metrics reduced on the fly.
 
     ``windows`` = ((name, start_s, end_s), ...): per-run ``mae_{name}_{error}`` and ``rmse_{name}_{error}`` of
@@ -336,6 +344,12 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
 
     After each chunk ``on_chunk(partial_result)`` is called (save, progress). On KeyboardInterrupt the runs
     finished so far are returned with ``complete=False``: nothing computed is lost.
+
+    ``devices`` (default: every visible device): the runs of each chunk are split over them
+    (:mod:`jaxatt.sharding`; the chunk is rounded up to a multiple of the device count, padding runs dropped);
+    ``devices=1`` runs on one device. The result does not depend on the devices beyond rounding.
+    ``progress``: True for a line on stderr updated from inside the scan every 1000 steps, or a callable
+    reporter (:mod:`jaxatt.progress`); None: off.
     Memory per chunk: the state and accumulators of ``chunk`` runs, one noise block (chunk x 1000 x 6) and
     the decimated traces; never the per-step trajectories.
     """
@@ -351,10 +365,16 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
         raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
     obs_dtype, sim_dtype = _dtypes(dtype)
     chunk = max(1, min(chunk, runs))
-    fn = _batch_fn_jit(observer, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
+    mesh = _sharding.seed_mesh(devices)
+    if mesh is not None:
+        chunk = -(-chunk // mesh.size) * mesh.size  # a multiple of the device count
+    reporter = _progress.make_reporter(progress)
+    fn = _batch_fn_jit(observer, mesh, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
                        hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
-                       sim_dtype=sim_dtype, **_extras(windows, init_params))
-    batched = lambda k: fn(scenario, params, k)[:2]  # noqa: E731 (the final states are dropped by the caller)
+                       sim_dtype=sim_dtype, **_extras(windows, init_params,
+                                                      reporter and ("ordered" if mesh is None else "unordered")))
+    batched = lambda k: _sharding.to_host(fn(scenario, params, k)[:2])  # noqa: E731 (final states dropped)
+    prog = _progress._Run(reporter, runs, n_steps, imu.NOISE_BLOCK) if reporter is not None else None
     per_run: Dict[str, list] = {}
     traces: Dict[str, list] = {}
     done: list = []
@@ -370,7 +390,14 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
             idx = np.arange(start, min(start + chunk, runs))
             pad = chunk - len(idx)  # keep one compiled shape: pad the last chunk, drop the padding
             keys = run_keys(seed, np.concatenate([idx, np.full(pad, idx[-1])]))
-            summ, trace = batched(keys)
+            if prog is not None:
+                prog.chunk_runs, prog.chunk_steps = len(idx), 0
+            with _progress.active(prog):
+                summ, trace = batched(keys)
+            if prog is not None:
+                prog.runs_done += len(idx)
+                prog.chunk_runs = 0
+                prog.report(0)
             for k, v in summ.items():
                 per_run.setdefault(k, []).append(np.asarray(v)[: len(idx)])
             if trace is not None:

@@ -66,8 +66,10 @@ from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Seq
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import PartitionSpec
 
 from . import metrics as M
+from . import sharding as _sharding
 from . import montecarlo, so3
 from . import parametrize as P
 from .integrate import Interval
@@ -304,9 +306,29 @@ def _build_loss(observer: Observer, *, n_steps: int, dt: float, spec: LossSpec, 
     return fn
 
 
+#: Partition specs of the loss outputs when the runs are split over devices (loss averaged by pmean).
+_LOSS_OUT_SPECS = (PartitionSpec(), {"window_loss": PartitionSpec(None, _sharding.AXIS),
+                                     "window_angle_deg": PartitionSpec(None, _sharding.AXIS),
+                                     "final_angle_deg": PartitionSpec(_sharding.AXIS),
+                                     "window_count": PartitionSpec(), "final_state": PartitionSpec(_sharding.AXIS)})
+
+
+def _pmean_loss(out):
+    loss, aux = out
+    return jax.lax.pmean(loss, _sharding.AXIS), aux
+
+
+def _sharded_loss(fn, mesh):
+    """``fn`` with its runs split over ``mesh`` (None: unchanged); the loss (a mean over runs, equal shards) is
+    the mean of the per-device losses, so its gradient is the gradient over all runs."""
+    if mesh is None:
+        return fn
+    return _sharding.shard_runs(fn, mesh, out_specs=_LOSS_OUT_SPECS, reduce=_pmean_loss)
+
+
 @functools.lru_cache(maxsize=32)
-def _loss_fn_cached(observer: Observer, **static):
-    return jax.jit(_build_loss(observer, **static))
+def _loss_fn_cached(observer: Observer, mesh=None, **static):
+    return jax.jit(_sharded_loss(_build_loss(observer, **static), mesh))
 
 
 def _dtypes(dtype):
@@ -316,7 +338,7 @@ def _dtypes(dtype):
 
 def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSpec, hold: str = "zoh",
                  dtype=None, checkpoint: Union[str, int, bool, None] = "auto", init_params=None,
-                 step_remat: Optional[bool] = None, jit: bool = True):
+                 step_remat: Optional[bool] = None, jit: bool = True, devices=1):
     """``loss(scenario, params, keys) -> (loss, aux)`` for a batch of run keys (:func:`montecarlo.run_keys`).
 
     The simulation is :func:`jaxatt.montecarlo.monte_carlo`'s (same truth, sensor samples, noise stream,
@@ -331,6 +353,8 @@ def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSp
     more during its backward pass. That divides the segment's memory by about 8 and, on CPU, is slightly
     faster (fewer stacked residuals to write and read). ``jit``: return the cached jitted function (compiled
     once per observer and static settings, reused for new params, scenarios of the same structure and keys).
+    ``devices``: split the runs of each call over these devices (:mod:`jaxatt.sharding`; None = every visible
+    device; default 1 = one device); the number of keys must then be a multiple of the device count.
     """
     if hold not in ("zoh", "linear"):
         raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}")
@@ -343,7 +367,19 @@ def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSp
     static = dict(n_steps=n_steps, dt=dt, spec=spec, hold=hold, obs_dtype=obs_dtype, sim_dtype=sim_dtype,
                   segment=segment, init_params=init_params,
                   step_remat=bool(segment) if step_remat is None else bool(step_remat))
-    return _loss_fn_cached(observer, **static) if jit else _build_loss(observer, **static)
+    mesh = _sharding.seed_mesh(devices)
+    if jit:
+        fn = _loss_fn_cached(observer, mesh, **static)
+    else:
+        fn = _sharded_loss(_build_loss(observer, **static), mesh)
+    if mesh is None:
+        return fn
+
+    def checked(scenario, params, keys):
+        _sharding.check_batch(int(np.shape(keys)[0]), mesh)
+        return fn(scenario, params, keys)
+
+    return checked
 
 
 def simulation_loss(scenario, observer: Observer, params, keys, *, duration: float, dt: float,
@@ -739,7 +775,8 @@ class Problem(NamedTuple):
 def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_weight: float = 0.0,
                  duration: Optional[float] = None, config: Optional[Mapping] = None, freeze: Sequence[str] = (),
                  only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None, method: Optional[str] = None,
-                 start=None, checkpoint="auto", step_remat: Optional[bool] = None, dtype=None) -> Problem:
+                 start=None, checkpoint="auto", step_remat: Optional[bool] = None, dtype=None,
+                 devices=None) -> Problem:
     """The :class:`Problem` :func:`tune` solves (arguments as there)."""
     overrides = dict(config or {})
     if duration is not None:
@@ -756,7 +793,7 @@ def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_
     spec = loss_spec(loss or s.loss_kind, steady_start=st, steady_end=en, transient_start=ts, transient_end=te,
                      w_transient=transient_weight)
     f = make_loss_fn(s.observer, duration=s.duration, dt=s.dt, spec=spec, hold=s.hold, dtype=dtype,
-                     checkpoint=checkpoint, init_params=s.init_params, step_remat=step_remat)
+                     checkpoint=checkpoint, init_params=s.init_params, step_remat=step_remat, devices=devices)
     return Problem(s, bound, spec, f, segment_length(int(round(s.duration / s.dt)), checkpoint))
 
 
@@ -766,7 +803,8 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
          transient_weight: float = 0.0, duration: Optional[float] = None, config: Optional[Mapping] = None,
          freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None,
          method: Optional[str] = None, start=None, checkpoint="auto", step_remat: Optional[bool] = None,
-         dtype=None, callback: Optional[Callable[[dict], None]] = None, quiet: bool = False) -> TuneResult:
+         dtype=None, callback: Optional[Callable[[dict], None]] = None, quiet: bool = False,
+         devices=None) -> TuneResult:
     """Tune an experiment's gains on simulated Monte Carlo runs (``jaxatt tune``).
 
     Args:
@@ -791,6 +829,9 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
         checkpoint, step_remat: segment length of the checkpointed scan (:func:`segment_length`) and per-step
             rematerialisation (:func:`make_loss_fn`).
         callback: ``callback(info)`` after every step; default prints a line on stderr (unless ``quiet``).
+        devices: split each minibatch / validation batch of runs over these devices (:mod:`jaxatt.sharding`;
+            default every visible device; 1 = one device); batch_runs and val_runs must be multiples of their
+            count.
     Returns a :class:`TuneResult`; ``result.status`` is "done", "early-stopped", "interrupted" or "non-finite".
     """
     jax.config.update("jax_enable_x64", True)
@@ -798,7 +839,7 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
         raise ValueError(f"need steps >= 0, train_runs >= 1, val_runs >= 0; got {steps}, {train_runs}, {val_runs}")
     prob = make_problem(experiment_name, loss=loss, transient_weight=transient_weight, duration=duration,
                         config=config, freeze=freeze, only=only, masks=masks, method=method, start=start,
-                        checkpoint=checkpoint, step_remat=step_remat, dtype=dtype)
+                        checkpoint=checkpoint, step_remat=step_remat, dtype=dtype, devices=devices)
     s, bound, spec = prob.setup, prob.parametrization, prob.spec
     params0 = bound.base
     train_keys = montecarlo.run_keys(seed, list(range(train_runs)))

@@ -24,9 +24,10 @@ orientation estimation with bias estimation and magnetic disturbance rejection",
 3. Gyro bias. (a) At rest: b^ follows the low-passed gyro with time constant ``tau_bias_rest``, weighted by a
    smooth rest detector (gyro and acc deviations from their ``tau_rest`` low-pass below ``rest_th_gyr`` /
    ``rest_th_acc``, held for ``rest_hold`` s). (b) In motion: Mahony's integral of the corrections,
-   b^ <- b^ - phi_B / ``tau_bias`` (acc) and - phi_B / ``tau_bias_mag`` (mag), phi_B the correction rotation
-   vector of the step in the body frame, saturated against wind-up (a step's acc correction at 0.01 rad, the
-   heading error at 10 deg; steady operation stays far below). |b^_i| <= ``bias_max``.
+   b^ <- b^ - phi_B / ``tau_bias``, phi_B the inclination correction of the step (rotation vector, body frame),
+   saturated at 0.01 rad against wind-up (steady operation stays far below). |b^_i| <= ``bias_max``. The
+   heading corrections do not feed the bias (a bias change along the current vertical would tilt the estimate
+   once the sensor turns), so the magnetometer never acts on the inclination, not even through the bias.
 
 Gates (smooth, learnable). Each uses a normalised squared deviation e >= 0, clipped at 2 and held with a linear
 decay ("e_h = max(min(e, 2), e_h - dt / hold)", so a deviation keeps the gate shut for ``hold`` s after it
@@ -84,7 +85,6 @@ class Params(NamedTuple):
         tau_acc_2: second low-pass stage (s), > 0 (small: first-order, i.e. Mahony with k_P = 1 / tau_acc).
         tau_mag: heading correction time constant (s), > 0.
         tau_bias: motion bias integral from the inclination corrections (s), > 0 (large: off).
-        tau_bias_mag: motion bias integral from the heading corrections (s), > 0 (large: off).
         tau_bias_rest: bias low-pass while at rest (s), > 0.
         tau_rest: low-pass of gyro and acc for rest detection (s), > 0.
         rest_hold: time the rest condition must hold before the sensor counts as at rest (s), > 0.
@@ -105,7 +105,6 @@ class Params(NamedTuple):
     tau_acc_2: jax.Array
     tau_mag: jax.Array
     tau_bias: jax.Array
-    tau_bias_mag: jax.Array
     tau_bias_rest: jax.Array
     tau_rest: jax.Array
     rest_hold: jax.Array
@@ -124,12 +123,12 @@ class Params(NamedTuple):
 
 PARAM_NAMES = Params._fields
 #: Parameters that :mod:`jaxatt.broad_tune` learns (all positive; learnt in log space).
-TUNABLE = ("tau_acc", "tau_acc_2", "tau_mag", "tau_bias", "tau_bias_mag", "tau_bias_rest", "tau_rest",
+TUNABLE = ("tau_acc", "tau_acc_2", "tau_mag", "tau_bias", "tau_bias_rest", "tau_rest",
            "rest_hold", "rest_th_gyr", "rest_th_acc", "acc_th", "acc_hold", "mag_norm_th", "mag_dip_th", "mag_hold",
            "tau_mag_ref")
 
 _DEFAULTS = dict(
-    tau_acc=2.0, tau_acc_2=1.0, tau_mag=9.0, tau_bias=60.0, tau_bias_mag=300.0, tau_bias_rest=3.0, tau_rest=0.5,
+    tau_acc=2.0, tau_acc_2=1.0, tau_mag=9.0, tau_bias=60.0, tau_bias_rest=3.0, tau_rest=0.5,
     rest_hold=1.5, rest_th_gyr=2.0 * _DEG, rest_th_acc=0.5, acc_th=5.0, acc_hold=0.1, mag_norm_th=0.1,
     mag_dip_th=10.0 * _DEG, mag_hold=0.5, tau_mag_ref=30.0, gravity=9.81, gate_sharpness=6.0, bias_max=2.0 * _DEG)
 
@@ -235,7 +234,6 @@ class Coeffs(NamedTuple):
     k_mag: jax.Array
     k_mag_ref: jax.Array
     inv_bias: jax.Array
-    inv_bias_mag: jax.Array
     inv_rest_gyr2: jax.Array
     inv_rest_acc2: jax.Array
     inv_acc_th: jax.Array
@@ -259,7 +257,7 @@ def coefficients(p: Params, dt) -> Coeffs:
         dt=dt, k_rest=gain_from_tau(p.tau_rest, dt), k_bias_rest=gain_from_tau(p.tau_bias_rest, dt),
         k_acc=gain_from_tau(p.tau_acc, dt), k_acc_2=gain_from_tau(p.tau_acc_2, dt),
         k_mag=gain_from_tau(p.tau_mag, dt), k_mag_ref=gain_from_tau(p.tau_mag_ref, dt),
-        inv_bias=1.0 / p.tau_bias, inv_bias_mag=1.0 / p.tau_bias_mag,
+        inv_bias=1.0 / p.tau_bias,
         inv_rest_gyr2=1.0 / (p.rest_th_gyr * p.rest_th_gyr), inv_rest_acc2=1.0 / (p.rest_th_acc * p.rest_th_acc),
         inv_acc_th=1.0 / p.acc_th, inv_mag_norm_th=1.0 / p.mag_norm_th, inv_mag_dip_th=1.0 / p.mag_dip_th,
         dec_rest=dt / p.rest_hold, dec_acc=dt / p.acc_hold, dec_mag=dt / p.mag_hold,
@@ -277,10 +275,9 @@ _ROWS = ("qw", "qx", "qy", "qz", "bx", "by", "bz", "l1x", "l1y", "l1z", "l2x", "
          "abx", "aby", "abz", "rest_e", "acc_e", "mag_e", "mag_norm_ref", "mag_sin_dip_ref",
          "w_mag", "w_acc", "w_rest", "psi")
 _N_STATE = 24
-#: Anti-windup of the motion-bias integrators: saturation of a step's acc correction (rad) and of the heading
-#: error (rad) they integrate (far above their values in steady operation: ~1e-4 rad per step, a few degrees).
+#: Anti-windup of the motion-bias integrator: saturation of a step's acc correction (rad) it integrates (far
+#: above its values in steady operation, ~1e-4 rad per step).
 _PHI_SAT = 0.01
-_PSI_SAT = 10.0 * _DEG
 
 
 def _gate(e_held, c: Coeffs):
@@ -408,18 +405,16 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     d = 1.0 / (1.0 + 0.25 * theta * theta)
     ct, st = (1.0 - 0.25 * theta * theta) * d, theta * d
 
-    # --- motion bias: integral of the corrections (Mahony et al. 2008), sensor frame; up_B = R^T e_z is the same
-    # before and after the rotation about z. Anti-windup: the integrators see the acc correction of a step
-    # saturated at _PHI_SAT rad and the heading error saturated at _PSI_SAT rad (x / sqrt(1 + (x / x_max)^2)),
-    # so that converging from a large error does not wind the bias up. ---
+    # --- motion bias: integral of the inclination corrections (Mahony et al. 2008), sensor frame. Anti-windup: the
+    # integrator sees a step's correction saturated at _PHI_SAT rad (x / sqrt(1 + (x / x_max)^2)), so that
+    # converging from a large error does not wind the bias up. The heading corrections do not feed the bias: a
+    # bias change along today's vertical would tilt the estimate once the sensor turns. ---
     sx, sy = 2.0 * cx, 2.0 * cy  # acc correction rotation vector (ENU, horizontal)
-    fa_b = 1.0 / jnp.sqrt(1.0 + (sx * sx + sy * sy) * (1.0 / (_PHI_SAT * _PHI_SAT)))
+    fa_b = c.inv_bias / jnp.sqrt(1.0 + (sx * sx + sy * sy) * (1.0 / (_PHI_SAT * _PHI_SAT)))
     pbx, pby, pbz = _rot_inv_c(qa, (sx * fa_b, sy * fa_b, zero))
-    ubx, uby, ubz = 2.0 * (qax * qaz - qaw * qay), 2.0 * (qay * qaz + qaw * qax), 1.0 - 2.0 * (qax * qax + qay * qay)
-    km = w_mag * c.k_mag * psi / jnp.sqrt(1.0 + psi * psi * (1.0 / (_PSI_SAT * _PSI_SAT))) * c.inv_bias_mag
-    bx = jnp.clip(bx - pbx * c.inv_bias - km * ubx, -c.bias_max, c.bias_max)
-    by = jnp.clip(by - pby * c.inv_bias - km * uby, -c.bias_max, c.bias_max)
-    bz = jnp.clip(bz - pbz * c.inv_bias - km * ubz, -c.bias_max, c.bias_max)
+    bx = jnp.clip(bx - pbx, -c.bias_max, c.bias_max)
+    by = jnp.clip(by - pby, -c.bias_max, c.bias_max)
+    bz = jnp.clip(bz - pbz, -c.bias_max, c.bias_max)
 
     return (qw * inv_n, qx * inv_n, qy * inv_n, qz * inv_n, bx, by, bz, ct * l1x - st * l1y, st * l1x + ct * l1y,
             l1z, ct * l2x - st * l2y, st * l2x + ct * l2y, l2z, glx, gly, glz, abx, aby, abz, rest_e, acc_e, mag_e,
