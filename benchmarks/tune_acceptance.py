@@ -79,7 +79,8 @@ def evaluate_pair(s, paper_params, tuned_params, runs, seed, chunk, trace_every)
         t0 = time.perf_counter()
         res = montecarlo.monte_carlo(s.scenario, s.observer, p, runs=runs, duration=s.duration, dt=s.dt, seed=seed,
                                      errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold, chunk=chunk,
-                                     trace_every=trace_every, trace_fn=_trace)
+                                     trace_every=trace_every, trace_fn=_trace, windows=s.windows,
+                                     init_params=s.init_params)
         wall = time.perf_counter() - t0
         print(f"  held-out {label}: {runs} runs in {wall:.0f} s, steady mean angle error "
               f"{np.mean(res.per_run['mean_angle_error_deg']):.4f} deg", flush=True)
@@ -89,7 +90,8 @@ def evaluate_pair(s, paper_params, tuned_params, runs, seed, chunk, trace_every)
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--experiment", required=True, choices=["batista-ges", "batista-so3"])
+    ap.add_argument("--experiment", required=True,
+                    choices=["batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3"])
     ap.add_argument("--duration", type=float, default=None, help="horizon, s (default the paper's 3600)")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--train-runs", type=int, default=64)
@@ -124,7 +126,7 @@ def main(argv=None) -> int:
     meta = C.metadata(sys.argv if argv is None else ["tune_acceptance.py"] + list(argv))
     cfg = {} if args.duration is None else {"duration": args.duration}
     s = T.setup(args.experiment, **cfg)
-    reduced = s.duration != 3600.0
+    reduced = s.duration != (3600.0 if args.experiment.startswith("batista") else 500.0)
     t_start = time.perf_counter()
     tuning = None
     if args.gains:

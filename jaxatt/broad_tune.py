@@ -82,6 +82,9 @@ class ObserverSpec(NamedTuple):
         bounds: {gain: (lo, hi)} for the tuned gains.
         note: one line on what the defaults are.
         prepare: optional ``prepare(params, dt)`` -> what ``step`` takes (coefficients hoisted out of the scan).
+        start: {gain: value} :func:`broad_tune` starts from when no ``init_gains`` are given (None: ``defaults``).
+            The robust AHRS starts from its untuned defaults, never from the shipped gains (which were tuned on
+            every trial and would leak other trials into a cross-validation fold).
     """
 
     name: str
@@ -92,6 +95,7 @@ class ObserverSpec(NamedTuple):
     bounds: Dict[str, Tuple[float, float]]
     note: str = ""
     prepare: Optional[Callable] = None
+    start: Optional[Dict[str, float]] = None
 
 
 class _TrialState(NamedTuple):
@@ -154,6 +158,7 @@ def _spec_robust() -> ObserverSpec:
         defaults = ra.params_to_dict(ra.default_params(jnp.float64 if jax.config.jax_enable_x64 else None))
         note = "untuned defaults"
     defaults = {k: float(defaults.get(k, v)) for k, v in ra._DEFAULTS.items()}
+    start = {k: float(v) for k, v in ra._DEFAULTS.items()}
 
     def build(g):
         return ra.Params(**{k: jnp.asarray(g[k]) for k in ra.PARAM_NAMES})
@@ -165,7 +170,7 @@ def _spec_robust() -> ObserverSpec:
         mag_norm_th=(0.01, 2.0), mag_dip_th=(0.5 * _DEG, 90 * _DEG), mag_hold=(0.01, 20.0),
         tau_mag_ref=(1.0, 1e4))
     return ObserverSpec("robust", ra.make_observer(), defaults, build, tuple(ra.TUNABLE), bounds, note,
-                        prepare=ra.coefficients)
+                        prepare=ra.coefficients, start=start)
 
 
 def _spec_mahony() -> ObserverSpec:
@@ -579,14 +584,15 @@ def broad_tune(data_dir, observer_name: str = "robust", trials=None, out_path="g
             training loss) and at the end; readable by :func:`broad_eval` (``gains_path``) at any time.
         steps: optimiser steps (each: one forward and backward pass over all training trials).
         tune: gains to learn (default: the spec's ``tunable``); the others stay fixed.
-        init_gains: starting gains: a dict or a gains-file path (default: the spec's defaults).
+        init_gains: starting gains: a dict or a gains-file path (default: the spec's ``start`` gains - for
+            "robust" its untuned defaults - else its defaults).
         dtype: arithmetic of the filter during tuning ("float32" default: faster; evaluate in float64).
     Returns {"gains", "best_loss_deg", "history", "train_trials", "out_path", "wall_s"}.
     """
     import optax
 
     spec = get_spec(observer_name)
-    gains0 = dict(spec.defaults)
+    gains0 = dict(spec.start if spec.start is not None else spec.defaults)
     if isinstance(init_gains, (str, Path)):
         obs_name, g, _ = load_gains(init_gains)
         if obs_name != spec.name:

@@ -157,6 +157,8 @@ def _parser() -> argparse.ArgumentParser:
     bt.add_argument("--observer", default="robust")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
     bt.add_argument("--steps", type=int, default=150)
+    bt.add_argument("--lr", type=_positive, default=0.05, help="Adam learning rate on log-gains")
+    bt.add_argument("--init-gains", default=None, help="start from this gains JSON (default: untuned defaults)")
     bt.add_argument("--out", default="gains.json")
 
     ep = sub.add_parser("excitation", help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
@@ -420,7 +422,8 @@ def _tools(args) -> int:
         broad_tune.broad_eval(args.data_dir, args.observer, gains_path=args.gains, json_path=args.json,
                               trials=args.trials, dtype="float32" if args.float32 else "float64")
         return 0
-    broad_tune.broad_tune(args.data_dir, args.observer, trials=args.trials, out_path=args.out, steps=args.steps)
+    broad_tune.broad_tune(args.data_dir, args.observer, trials=args.trials, out_path=args.out, steps=args.steps,
+                          lr=args.lr, init_gains=args.init_gains)
     print(f"gains written to {args.out}")
     return 0
 

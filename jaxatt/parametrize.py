@@ -379,6 +379,16 @@ GAINS: Dict[str, Tuple[Gain, ...]] = {
 }
 
 
+_NLIO_FG_GAINS = (
+    Gain("kp", SPD(), "1/s", "attitude gain Kp of the NLIO (sensors2020-nlio eq. (10)), 3x3 SPD"),
+    Gain("kv", Positive("log"), "1/s", "gyro-bias gain k_v of the NLIO (eq. (10))"),
+    Gain("k1", SPD(), "1/s", "fixed gain K1 of the auxiliary observer of v1 = accelerometer (NLIO-FG), 3x3 SPD"),
+    Gain("k2", SPD(), "1/s", "fixed gain K2 of the auxiliary observer of v2 = magnetometer (NLIO-FG), 3x3 SPD"),
+)
+for _case in ("nlio-case1", "nlio-case2", "nlio-case3"):
+    GAINS[_case] = _NLIO_FG_GAINS
+
+
 def register_gains(experiment: str, gains: Sequence[Gain]) -> None:
     """Declare the tunable gains of an experiment (e.g. ``"nlio-case1"``: Kp as :class:`SPD`, k1, k2 as
     :class:`Positive`); :func:`for_experiment` and :mod:`jaxatt.tune` then use them."""
