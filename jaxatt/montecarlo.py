@@ -369,10 +369,12 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
     if mesh is not None:
         chunk = -(-chunk // mesh.size) * mesh.size  # a multiple of the device count
     reporter = _progress.make_reporter(progress)
+    # ordered host callbacks are not supported on several devices: there the reports may arrive out of order
+    # and jaxatt.progress keeps them monotone
+    hook = False if reporter is None else ("ordered" if mesh is None else "unordered")
     fn = _batch_fn_jit(observer, mesh, n_steps=n_steps, dt=dt, errors_fn=errors_fn, window_start=float(window_start),
                        hold=hold, trace_every=trace_every, trace_fn=trace_fn or default_trace, obs_dtype=obs_dtype,
-                       sim_dtype=sim_dtype, **_extras(windows, init_params,
-                                                      reporter and ("ordered" if mesh is None else "unordered")))
+                       sim_dtype=sim_dtype, **_extras(windows, init_params, hook))
     batched = lambda k: _sharding.to_host(fn(scenario, params, k)[:2])  # noqa: E731 (final states dropped)
     prog = _progress._Run(reporter, runs, n_steps, imu.NOISE_BLOCK) if reporter is not None else None
     per_run: Dict[str, list] = {}
