@@ -103,6 +103,9 @@ def main(argv=None) -> int:
     ap.add_argument("--loss", default="angle_sq", choices=["angle_sq", "angle", "chordal"])
     ap.add_argument("--diagonal-spd", action="store_true",
                     help="tune only the diagonal of SPD gains (batista-ges gain_z: 9 numbers instead of 45)")
+    ap.add_argument("--refine-schedule", type=float, nargs="+", default=(), metavar="T",
+                    help="extra switch times (s) inserted into the gain schedules before tuning (the start observer "
+                         "is the paper's; the tuner may vary the gains on the new intervals)")
     ap.add_argument("--freeze", nargs="*", default=(), help="gains kept at the paper's values")
     ap.add_argument("--seed", type=int, default=0, help="base seed of the training and validation runs")
     ap.add_argument("--eval-runs", type=int, default=100)
@@ -147,7 +150,7 @@ def main(argv=None) -> int:
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
                      seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
                      patience=args.patience, lr=args.lr, loss=args.loss, config=cfg, freeze=tuple(args.freeze),
-                     masks=masks or None)
+                     masks=masks or None, refine_schedule=args.refine_schedule)
         tuned = res.params
         r = res.result
         tuning = {"status": r.status, "best_step": r.best_step, "best_val_loss": r.best_val,

@@ -132,6 +132,8 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--lr", type=_positive, default=0.05)
+    tp.add_argument("--refine-schedule", type=float, nargs="+", default=(), metavar="T",
+                    help="extra switch times (s) for the experiment's gain schedules, tuned from the paper's values")
     tp.add_argument("--out", default="gains.json", help="gains + history JSON, rewritten as the loop goes")
     tp.add_argument("--quiet", action="store_true")
 
@@ -407,7 +409,7 @@ def _tools(args) -> int:
         from . import tune
 
         tune.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=args.out, seed=args.seed,
-                  lr=args.lr, duration=args.duration, quiet=args.quiet)
+                  lr=args.lr, duration=args.duration, refine_schedule=args.refine_schedule, quiet=args.quiet)
         print(f"gains written to {args.out}")
         return 0
     if args.command == "evaluate":

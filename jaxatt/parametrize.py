@@ -39,7 +39,7 @@ import numpy as np
 
 __all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "Parametrization",
            "BoundParametrization", "Gain", "GAINS", "register_gains", "gains_of", "for_experiment",
-           "schedule_mask", "softplus_inverse"]
+           "schedule_mask", "refine_schedule", "schedule_fields", "softplus_inverse"]
 
 
 def softplus_inverse(y):
@@ -219,6 +219,37 @@ def schedule_mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:
     m = np.zeros(n_intervals, bool)
     m[np.asarray(list(tunable), int)] = True
     return m
+
+
+def refine_schedule(params, times: Sequence[float], fields: Sequence[str], *, times_field: str = "switch_times"):
+    """``params`` with extra switch times inserted into its piecewise-constant gain schedules, the gains
+    unchanged as functions of time (each new interval copies the value in force there).
+
+    Use it to give a tuner more freedom than the paper's schedule while starting from exactly the paper's
+    observer: batista2019-ges Table 1 stops switching at 720 s; ``refine_schedule(p, [1200, 1800, 2400],
+    ["alpha1", "alpha2"])`` lets the gains keep changing after it.
+
+    Args:
+        params: a Params NamedTuple with ``times_field`` (n-1,) s and schedule fields of shape (n, ...).
+        times: new switch times, s (finite; ones already present are ignored).
+        fields: the schedule fields, each of shape (n, ...) (:func:`schedule_fields` lists an experiment's).
+    """
+    st = np.asarray(getattr(params, times_field), float)
+    new = np.asarray(list(times), float)
+    if new.ndim != 1 or not np.all(np.isfinite(new)):
+        raise ValueError(f"refine_schedule: times must be finite numbers, got {times!r}")
+    merged = np.unique(np.concatenate([st, new]))
+    n = st.shape[0] + 1
+    # interval of the old schedule in force on each new interval (gains[i] hold on [st[i-1], st[i]))
+    starts = np.concatenate([[-np.inf], merged])
+    idx = np.searchsorted(st, starts, side="right")
+    out = {times_field: jnp.asarray(merged, jnp.asarray(getattr(params, times_field)).dtype)}
+    for f in fields:
+        v = jnp.asarray(getattr(params, f))
+        if v.ndim < 1 or v.shape[0] != n:
+            raise ValueError(f"refine_schedule: {f} has shape {v.shape}, want ({n}, ...) for {n - 1} switch times")
+        out[f] = v[jnp.asarray(idx)]
+    return params._replace(**out)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -405,6 +436,11 @@ def gains_of(experiment: str) -> Tuple[Gain, ...]:
     except KeyError:
         raise ValueError(f"no tunable gains declared for {experiment!r} (known: {sorted(GAINS)}); "
                          "declare them with jaxatt.parametrize.register_gains") from None
+
+
+def schedule_fields(experiment: str) -> Tuple[str, ...]:
+    """The fields of an experiment's gains that are piecewise-constant :class:`Schedule` s."""
+    return tuple(g.field for g in gains_of(experiment) if isinstance(g.transform, Schedule))
 
 
 def for_experiment(experiment: str, *, freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None,

@@ -809,8 +809,8 @@ class Problem(NamedTuple):
 def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_weight: float = 0.0,
                  duration: Optional[float] = None, config: Optional[Mapping] = None, freeze: Sequence[str] = (),
                  only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None, method: Optional[str] = None,
-                 start=None, checkpoint="auto", step_remat: Optional[bool] = None, dtype=None,
-                 devices=None) -> Problem:
+                 start=None, refine_schedule: Sequence[float] = (), checkpoint="auto",
+                 step_remat: Optional[bool] = None, dtype=None, devices=None) -> Problem:
     """The :class:`Problem` :func:`tune` solves (arguments as there)."""
     overrides = dict(config or {})
     if duration is not None:
@@ -819,6 +819,11 @@ def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_
     if s.check_params:
         s.check_params(s.params)
     params0 = _start_params(experiment_name, s.params, start)
+    if len(refine_schedule):
+        fields = P.schedule_fields(experiment_name)
+        if not fields:
+            raise ValueError(f"refine_schedule: {experiment_name} has no piecewise-constant gain schedule")
+        params0 = P.refine_schedule(params0, refine_schedule, fields)
     if s.check_params:
         s.check_params(params0)
     bound = P.for_experiment(experiment_name, freeze=freeze, only=only, masks=masks, method=method).bind(params0)
@@ -836,9 +841,9 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
          patience: Optional[int] = 4, lr: float = 0.05, clip: Optional[float] = 1.0, loss: Optional[str] = None,
          transient_weight: float = 0.0, duration: Optional[float] = None, config: Optional[Mapping] = None,
          freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None,
-         method: Optional[str] = None, start=None, checkpoint="auto", step_remat: Optional[bool] = None,
-         dtype=None, callback: Optional[Callable[[dict], None]] = None, quiet: bool = False,
-         devices=None) -> TuneResult:
+         method: Optional[str] = None, start=None, refine_schedule: Sequence[float] = (), checkpoint="auto",
+         step_remat: Optional[bool] = None, dtype=None, callback: Optional[Callable[[dict], None]] = None,
+         quiet: bool = False, devices=None) -> TuneResult:
     """Tune an experiment's gains on simulated Monte Carlo runs (``jaxatt tune``).
 
     Args:
@@ -860,6 +865,9 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
         freeze / only / masks / method: which gains are tuned (see :func:`jaxatt.parametrize.for_experiment`).
         start: starting gains (a gains JSON path, a dict of gains, or ``fn(params) -> params``); default the
             paper's.
+        refine_schedule: extra switch times (s) inserted into the experiment's gain schedules before tuning
+            (:func:`jaxatt.parametrize.refine_schedule`): the start observer is unchanged, the tuner may then
+            vary the gains on the new intervals (e.g. batista-ges after Table 1's last switch at 720 s).
         checkpoint, step_remat: segment length of the checkpointed scan (:func:`segment_length`) and per-step
             rematerialisation (:func:`make_loss_fn`).
         callback: ``callback(info)`` after every step; default prints a line on stderr (unless ``quiet``).
@@ -873,7 +881,8 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
         raise ValueError(f"need steps >= 0, train_runs >= 1, val_runs >= 0; got {steps}, {train_runs}, {val_runs}")
     prob = make_problem(experiment_name, loss=loss, transient_weight=transient_weight, duration=duration,
                         config=config, freeze=freeze, only=only, masks=masks, method=method, start=start,
-                        checkpoint=checkpoint, step_remat=step_remat, dtype=dtype, devices=devices)
+                        refine_schedule=refine_schedule, checkpoint=checkpoint, step_remat=step_remat, dtype=dtype,
+                        devices=devices)
     s, bound, spec = prob.setup, prob.parametrization, prob.spec
     params0 = bound.base
     train_keys = montecarlo.run_keys(seed, list(range(train_runs)))

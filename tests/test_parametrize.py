@@ -167,3 +167,36 @@ def test_gains_json_round_trip(name, make, tmp_path):
     bad.write_text(json.dumps(payload))
     with pytest.raises(ValueError):
         T.load_gains(str(bad))
+
+
+@pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
+def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
+    """Extra switch times (inside intervals, before the first, after the last, and one already present) leave
+    every schedule's value at every time unchanged; the refined params are valid and tunable per interval."""
+    from jaxatt.observers import batista_ges as ges_obs
+    from jaxatt.observers import batista_so3 as so3_obs
+
+    p = make()
+    extra = [30.0, 700.0, 1200.0, 2400.0, float(np.asarray(p.switch_times)[0])]
+    fields = P.schedule_fields(name)
+    assert set(fields) == {"alpha1", "alpha2"}
+    q = P.refine_schedule(p, extra, fields)
+    n_old, n_new = len(np.asarray(p.switch_times)), len(np.asarray(q.switch_times))
+    assert n_new == n_old + 4 and np.all(np.diff(np.asarray(q.switch_times)) > 0)
+    t = np.concatenate([np.linspace(-1.0, 3600.0, 7919), np.asarray(q.switch_times)])
+    for field in fields:
+        a = np.asarray(getattr(p, field))[np.sum(t[:, None] >= np.asarray(p.switch_times), axis=1)]
+        b = np.asarray(getattr(q, field))[np.sum(t[:, None] >= np.asarray(q.switch_times), axis=1)]
+        np.testing.assert_array_equal(a, b)
+    if name == "batista-ges":  # the observer's own schedule lookup agrees
+        np.testing.assert_array_equal(np.asarray(ges_obs._schedule(p, jnp.asarray(t))),
+                                      np.asarray(ges_obs._schedule(q, jnp.asarray(t))))
+        ges_obs.check_params(q)
+    else:
+        so3_obs.check_params(q)
+    bound = P.for_experiment(name).bind(q)
+    assert bound.theta0["alpha1"].shape == (n_new + 1,)
+    with pytest.raises(ValueError, match="shape"):
+        P.refine_schedule(p, [10.0], ["alpha1", "ref_nav"])
+    with pytest.raises(ValueError, match="finite"):
+        P.refine_schedule(p, [np.nan], fields)
