@@ -106,6 +106,9 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-schedule", type=float, nargs="+", default=(), metavar="T",
                     help="extra switch times (s) inserted into the gain schedules before tuning (the start observer "
                          "is the paper's; the tuner may vary the gains on the new intervals)")
+    ap.add_argument("--schedule-from", type=float, default=None, metavar="T",
+                    help="tune only the schedule intervals that start at or after T s (earlier ones keep the "
+                         "paper's values)")
     ap.add_argument("--freeze", nargs="*", default=(), help="gains kept at the paper's values")
     ap.add_argument("--seed", type=int, default=0, help="base seed of the training and validation runs")
     ap.add_argument("--eval-runs", type=int, default=100)
@@ -146,6 +149,14 @@ def main(argv=None) -> int:
             for g in P.gains_of(args.experiment):
                 if isinstance(g.transform, P.SPD) and g.field not in args.freeze:
                     masks[g.field] = P.SPD.diagonal_mask(int(np.shape(getattr(s.params, g.field))[0]))
+        if args.schedule_from is not None:
+            from jaxatt import parametrize as P
+
+            times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
+            starts = np.concatenate([[0.0], times])
+            for f in P.schedule_fields(args.experiment):
+                if f not in args.freeze:
+                    masks[f] = P.schedule_mask(len(starts), np.nonzero(starts >= args.schedule_from)[0])
         t0 = time.perf_counter()
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
                      seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
