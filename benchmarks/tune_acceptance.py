@@ -106,6 +106,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-schedule", type=float, nargs="+", default=(), metavar="T",
                     help="extra switch times (s) inserted into the gain schedules before tuning (the start observer "
                          "is the paper's; the tuner may vary the gains on the new intervals)")
+    ap.add_argument("--start", default=None, metavar="G.json",
+                    help="start tuning from these gains (default: the paper's)")
     ap.add_argument("--schedule-from", type=float, default=None, metavar="T",
                     help="tune only the schedule intervals that start at or after T s (earlier ones keep the "
                          "paper's values)")
@@ -161,7 +163,7 @@ def main(argv=None) -> int:
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
                      seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
                      patience=args.patience, lr=args.lr, loss=args.loss, config=cfg, freeze=tuple(args.freeze),
-                     masks=masks or None, refine_schedule=args.refine_schedule)
+                     masks=masks or None, refine_schedule=args.refine_schedule, start=args.start)
         tuned = res.params
         r = res.result
         tuning = {"status": r.status, "best_step": r.best_step, "best_val_loss": r.best_val,
