@@ -131,6 +131,22 @@ def test_ges_gradient_matches_finite_differences_across_switches(ges):
     assert max(errs) < 1e-4, errs
 
 
+def test_refined_schedule_same_loss_and_split_gradients_sum(ges):
+    """Splitting Table-1 intervals (jaxatt.parametrize.refine_schedule) changes nothing in the simulation, and
+    the gradient with respect to the log-gain of a split interval is the sum of its parts' gradients (chain
+    rule): two independent computations of the same derivative."""
+    prob, bound, loss, g, _ = ges
+    refined = P.refine_schedule(bound.base, [2.5, 4.5, 5.8], ["alpha1", "alpha2"])  # splits intervals 2, 4, 6
+    rbound = P.for_experiment("batista-ges").bind(refined)
+    rloss, rg, _ = value_and_grad(prob, rbound)
+    assert rloss == pytest.approx(loss, rel=1e-12)
+    groups = [[0], [1], [2, 3], [4], [5, 6], [7], [8, 9]]  # refined interval indices of each old interval
+    for field in ("alpha1", "alpha2"):
+        summed = np.array([np.asarray(rg[field])[ix].sum() for ix in groups])
+        np.testing.assert_allclose(summed, np.asarray(g[field]), rtol=1e-8, atol=1e-12 * np.abs(g[field]).max())
+    np.testing.assert_allclose(np.asarray(rg["gain_z"]), np.asarray(g["gain_z"]), rtol=1e-8, atol=1e-14)
+
+
 def test_checkpointing_gives_the_same_gradient(ges):
     prob, bound, loss, g, _ = ges
     plain = problem("batista-ges", checkpoint=False)
