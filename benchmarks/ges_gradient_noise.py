@@ -25,8 +25,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
 import _common as C  # noqa: E402
-
-REFINED_TIMES = (900.0, 1200.0, 1500.0, 1800.0, 2100.0, 2400.0, 2700.0, 3000.0, 3300.0)
+from ges_refined_start import REFINED_TIMES  # noqa: E402
 
 
 def main(argv=None) -> int:

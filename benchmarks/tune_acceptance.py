@@ -25,6 +25,9 @@ Usage:
   python benchmarks/tune_acceptance.py --experiment batista-ges            # full scale (hours on 2 CPU cores)
   python benchmarks/tune_acceptance.py --experiment batista-so3 --steps 20 --batch-runs 8
   python benchmarks/tune_acceptance.py --experiment batista-ges --gains G.json   # evaluation only
+  python benchmarks/tune_acceptance.py --experiment batista-ges --refine-schedule 900 1200 ... 3300 \
+      --schedule-from 720 --diagonal-spd --loss angle [--start G.json]   # tune a refined schedule (see
+      benchmarks/ges_refined_start.py for the growing-memory start)
   python benchmarks/tune_acceptance.py --experiment batista-so3 --duration 900 ...  # reduced scale (labelled)
 """
 from __future__ import annotations
