@@ -29,6 +29,7 @@ for the Batista papers); every :class:`Gain` names its unit.
 """
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 from typing import Any, Callable, Dict, Mapping, NamedTuple, Optional, Sequence, Tuple
@@ -51,18 +52,20 @@ def softplus_inverse(y):
 # ------------------------------------------------------------------------------------------------------
 # Transforms
 # ------------------------------------------------------------------------------------------------------
-class Transform:
-    """Base class: ``bind(value) -> Transform`` (fixes reference scales from a starting value),
+class Transform(abc.ABC):
+    """Abstract base: ``bind(value) -> Transform`` (fixes reference scales from a starting value),
     ``inverse(value) -> u`` (numpy, concrete), ``forward(u) -> value`` (jax, differentiable)."""
 
     def bind(self, value) -> "Transform":
         return self
 
+    @abc.abstractmethod
     def inverse(self, value) -> np.ndarray:
-        raise NotImplementedError
+        """Unconstrained u of a valid gain value (numpy)."""
 
+    @abc.abstractmethod
     def forward(self, u):
-        raise NotImplementedError
+        """The valid gain of any unconstrained u (jax, differentiable)."""
 
     def describe(self) -> str:
         return type(self).__name__
