@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     prob = T.make_problem("batista-ges", loss="angle", start=args.start, refine_schedule=REFINED_TIMES)
     base = prob.parametrization.base
     starts = np.concatenate([[0.0], np.asarray(base.switch_times, float)])
-    masks = {f: P.schedule_mask(len(starts), np.nonzero(starts >= 720.0)[0]) for f in ("alpha1", "alpha2")}
+    masks = {f: P.schedule_mask_from(base.switch_times, 720.0) for f in ("alpha1", "alpha2")}
     masks["gain_z"] = P.SPD.diagonal_mask(9)
     bound = P.for_experiment("batista-ges", masks=masks).bind(base)
     th0 = bound.init()

@@ -158,10 +158,9 @@ def main(argv=None) -> int:
             from jaxatt import parametrize as P
 
             times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
-            starts = np.concatenate([[0.0], times])
             for f in P.schedule_fields(args.experiment):
                 if f not in args.freeze:
-                    masks[f] = P.schedule_mask(len(starts), np.nonzero(starts >= args.schedule_from)[0])
+                    masks[f] = P.schedule_mask_from(times, args.schedule_from)
         t0 = time.perf_counter()
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
                      seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,

@@ -40,7 +40,7 @@ import numpy as np
 
 __all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "Parametrization",
            "BoundParametrization", "Gain", "GAINS", "register_gains", "gains_of", "for_experiment",
-           "schedule_mask", "refine_schedule", "schedule_fields", "softplus_inverse"]
+           "schedule_mask", "schedule_mask_from", "refine_schedule", "schedule_fields", "softplus_inverse"]
 
 
 def softplus_inverse(y):
@@ -222,6 +222,13 @@ def schedule_mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:
     m = np.zeros(n_intervals, bool)
     m[np.asarray(list(tunable), int)] = True
     return m
+
+
+def schedule_mask_from(switch_times: Sequence[float], t_from: float) -> np.ndarray:
+    """Boolean mask (True = tunable) of the schedule intervals that start at or after ``t_from`` s (the first
+    interval starts at 0 s); earlier intervals keep their values, e.g. a paper's start-up schedule."""
+    starts = np.concatenate([[0.0], np.asarray(switch_times, float)])
+    return starts >= float(t_from)
 
 
 def refine_schedule(params, times: Sequence[float], fields: Sequence[str], *, times_field: str = "switch_times"):

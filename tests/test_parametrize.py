@@ -196,6 +196,8 @@ def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
         so3_obs.check_params(q)
     bound = P.for_experiment(name).bind(q)
     assert bound.theta0["alpha1"].shape == (n_new + 1,)
+    late = P.schedule_mask_from(q.switch_times, 1200.0)  # the intervals starting at 1200 and 2400 s
+    assert late.shape == (n_new + 1,) and int(late.sum()) == int(np.sum(np.asarray(q.switch_times) >= 1200.0))
     with pytest.raises(ValueError, match="shape"):
         P.refine_schedule(p, [10.0], ["alpha1", "ref_nav"])
     with pytest.raises(ValueError, match="finite"):
