@@ -252,3 +252,32 @@ def test_float32_matches_float64_within_monte_carlo_spread(section4_runs):
         assert abs(np.mean(r32[key]) - np.mean(r64[key])) < 0.5 * spread + 1e-12, key
         # paired runs (same noise): per-run differences are small against the spread across runs
         assert np.mean(np.abs(r32[key] - r64[key])) < 0.25 * spread, key
+
+
+def test_growing_memory_schedule_extends_table1():
+    """growing_memory_params: with the cap always active and unit scales it is Table 1 at every time (a
+    refinement only); with the defaults the memory alpha1/alpha2 of eq. (15) grows as t/k from 900 s and the
+    early intervals keep Table 1's ratio; bad settings are refused."""
+    p = ges.default_params(REF, WE)
+    t = np.arange(0.0, 3600.0, 0.5)
+    a1p, a2p = (np.asarray(x) for x in ges._schedule(p, jnp.asarray(t)))
+    same = ges.growing_memory_params(p, k=10.0, early_scale=1.0, late_alpha1_scale=1.0, gain_z_scale=1.0)
+    a1s, a2s = (np.asarray(x) for x in ges._schedule(same, jnp.asarray(t)))
+    np.testing.assert_array_equal(a1s, a1p)
+    np.testing.assert_allclose(a2s, a2p, rtol=1e-15)
+    np.testing.assert_array_equal(np.asarray(same.gain_z), np.asarray(p.gain_z))
+
+    q = ges.growing_memory_params(p)
+    ges.check_params(q)  # every gain positive: Theorems 1-3 hold on each interval
+    a1, a2 = (np.asarray(x) for x in ges._schedule(q, jnp.asarray(t)))
+    early = t < 900.0
+    np.testing.assert_allclose(a1[early], 0.01 * a1p[early], rtol=1e-15)
+    np.testing.assert_allclose((a2 / a1)[early], (a2p / a1p)[early], rtol=1e-12)
+    t_start = np.asarray(q.switch_times)[np.searchsorted(np.asarray(q.switch_times), t[~early], side="right") - 1]
+    np.testing.assert_allclose((a2 / a1)[~early], np.minimum(2e-3, 1.5 / t_start), rtol=1e-12)
+    memory = a1 / a2
+    assert np.all(np.diff(memory[t >= 720.0]) >= 0) and memory[-1] > 2.0 * memory[t == 720.0][0]
+    np.testing.assert_allclose(np.asarray(q.gain_z), 8.0 * np.asarray(p.gain_z))
+    for bad in ({"k": 0.0}, {"early_scale": -1.0}, {"gain_z_scale": np.nan}, {"grow_from": 0.0}):
+        with pytest.raises(ValueError, match="growing_memory_params"):
+            ges.growing_memory_params(p, **bad)

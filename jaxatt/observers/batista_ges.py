@@ -38,7 +38,7 @@ stands in for m); a missing gyro sample holds the last valid gyro reading.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -50,7 +50,7 @@ from .base import ImuSample, Observer
 
 __all__ = ["Params", "State", "Out", "Coefficients", "make_observer", "default_params", "gain_from_q",
            "paper_gain", "coefficients", "check_params", "TABLE1_SWITCH_TIMES", "TABLE1_ALPHA1", "TABLE1_ALPHA2",
-           "lyapunov_block1"]
+           "lyapunov_block1", "growing_memory_params", "GROWING_MEMORY_TIMES"]
 
 #: Table 1 of batista2019-ges: gains of (15) on [0,60), [60,120), [120,240), [240,300), [300,600), [600,720),
 #: [720, inf) s.
@@ -182,6 +182,50 @@ def default_params(ref_nav, earth_rate_nav, *, r_hat_0=None, epsilon: float = 0.
         r_hat_0=r0,
     )
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), p)
+
+
+#: Switch times (s) added to Table 1 by :func:`growing_memory_params`.
+GROWING_MEMORY_TIMES = (900.0, 1200.0, 1500.0, 1800.0, 2100.0, 2400.0, 2700.0, 3000.0, 3300.0)
+
+
+def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0, early_scale: float = 0.01,
+                          late_alpha1_scale: float = 0.1, gain_z_scale: float = 8.0,
+                          refine_times: Sequence[float] = GROWING_MEMORY_TIMES) -> Params:
+    """``p`` with a growing-memory Earth-rate block: a gain schedule for long runs (an extension of Table 1,
+    not the paper's; issue 6, docs/observers/batista_ges.md "Tuning the gains").
+
+    After Table 1's last switch (720 s) the block of eq. (15) averages the gyro noise over a fixed memory of
+    about alpha1 / alpha2 = 500 s (only that ratio sets it). Here the schedule is refined at ``refine_times``
+    (s) and, on the intervals that start at t >= ``grow_from`` (s), alpha1 = alpha1_last * ``late_alpha1_scale``
+    and alpha2 = alpha1 * min(alpha2_last / alpha1_last, ``k`` / t): the memory grows as t / k, never shorter
+    than Table 1's last. The intervals before ``grow_from`` keep Table 1 with alpha1 and alpha2 both times
+    ``early_scale`` (same ratio: Table 1's large early alpha1 passes magnetometer noise into x2^, which a long
+    memory would keep); gain_z (eq. 21) is multiplied by ``gain_z_scale``. Every gain stays positive, so
+    Theorems 1-3 hold on each interval. The defaults were chosen by ``benchmarks/ges_refined_start.py
+    --search`` on training runs of Section IV's scenario: about -27 % steady-state mean angle error there; other
+    scenarios may want another k.
+    """
+    from ..parametrize import refine_schedule  # the tuning module; imported here to keep this module light
+
+    for name, v in (("k", k), ("early_scale", early_scale), ("late_alpha1_scale", late_alpha1_scale),
+                    ("gain_z_scale", gain_z_scale)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"growing_memory_params: {name} must be finite and positive, got {v}")
+    if not (np.isfinite(grow_from) and grow_from > 0):
+        raise ValueError(f"growing_memory_params: grow_from must be a positive time in s, got {grow_from}")
+    q = refine_schedule(p, refine_times, ["alpha1", "alpha2"])
+    starts = np.concatenate([[0.0], np.asarray(q.switch_times, float)])
+    a1 = np.array(q.alpha1, float)
+    a2 = np.array(q.alpha2, float)
+    last_a1, last_a2 = float(np.asarray(p.alpha1)[-1]), float(np.asarray(p.alpha2)[-1])
+    grow = starts >= grow_from
+    a1[~grow] *= early_scale
+    a2[~grow] *= early_scale
+    a1[grow] = last_a1 * late_alpha1_scale
+    a2[grow] = a1[grow] * np.minimum(last_a2 / last_a1, k / starts[grow])
+    dtype = jnp.asarray(q.alpha1).dtype
+    return q._replace(alpha1=jnp.asarray(a1, dtype), alpha2=jnp.asarray(a2, dtype),
+                      gain_z=jnp.asarray(q.gain_z) * gain_z_scale)
 
 
 # ------------------------------------------------------------------------------------------------------
