@@ -65,6 +65,25 @@ def family_params(p, **family):
     return ges.growing_memory_params(p, refine_times=REFINED_TIMES, **family)
 
 
+def family_transforms(switch_times, grow_from=900.0):
+    """Transforms that tune batista-ges through a few shapes of the family (jaxatt.parametrize.LogBasis /
+    ScaledSPD) instead of every interval: alpha1 = one level before ``grow_from`` and one after; alpha2 = the
+    same two levels and a power of t after ``grow_from`` (log alpha2 += p log(t_start / grow_from): p = -1 is
+    a 1/t memory); gain_z = one scale per row of R (3 blocks of 3). 8 numbers; the gradient of each sums the
+    per-interval gradients along its shape."""
+    import numpy as np
+
+    from jaxatt import parametrize as P
+
+    starts = np.concatenate([[0.0], np.asarray(switch_times, float)])
+    late = starts >= grow_from
+    power = np.where(late, np.log(np.maximum(starts, grow_from) / grow_from), 0.0)
+    b1 = np.stack([~late, late], 1).astype(float)
+    b2 = np.stack([~late, late, power], 1).astype(float)
+    return {"alpha1": P.LogBasis(b1), "alpha2": P.LogBasis(b2),
+            "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1))))}
+
+
 def start_params(p):
     """The family at the chosen values (``CHOSEN``)."""
     return family_params(p, **CHOSEN)

@@ -114,6 +114,9 @@ def main(argv=None) -> int:
     ap.add_argument("--schedule-from", type=float, default=None, metavar="T",
                     help="tune only the schedule intervals that start at or after T s (earlier ones keep the "
                          "paper's values)")
+    ap.add_argument("--family-basis", action="store_true",
+                    help="batista-ges: tune 8 numbers that move the schedules and gain_z through fixed shapes "
+                         "(benchmarks/ges_refined_start.py family_transforms; use with --refine-schedule)")
     ap.add_argument("--freeze", nargs="*", default=(), help="gains kept at the paper's values")
     ap.add_argument("--seed", type=int, default=0, help="base seed of the training and validation runs")
     ap.add_argument("--eval-runs", type=int, default=100)
@@ -161,11 +164,20 @@ def main(argv=None) -> int:
             for f in P.schedule_fields(args.experiment):
                 if f not in args.freeze:
                     masks[f] = P.schedule_mask_from(times, args.schedule_from)
+        transforms = None
+        if args.family_basis:
+            if args.experiment != "batista-ges" or masks:
+                ap.error("--family-basis is for batista-ges, without --diagonal-spd / --schedule-from")
+            from ges_refined_start import family_transforms
+
+            times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
+            transforms = family_transforms(times)
         t0 = time.perf_counter()
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
                      seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
                      patience=args.patience, lr=args.lr, loss=args.loss, config=cfg, freeze=tuple(args.freeze),
-                     masks=masks or None, refine_schedule=args.refine_schedule, start=args.start)
+                     masks=masks or None, refine_schedule=args.refine_schedule, start=args.start,
+                     transforms=transforms)
         tuned = res.params
         r = res.result
         tuning = {"status": r.status, "best_step": r.best_step, "best_val_loss": r.best_val,

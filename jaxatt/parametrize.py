@@ -38,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "Parametrization",
+__all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "LogBasis", "ScaledSPD",
+           "Parametrization",
            "BoundParametrization", "Gain", "GAINS", "register_gains", "gains_of", "for_experiment",
            "schedule_mask", "schedule_mask_from", "refine_schedule", "schedule_fields", "softplus_inverse"]
 
@@ -214,6 +215,80 @@ class Bounded(Transform):
 
     def describe(self):
         return f"bounded in ({self.low:g}, {self.high:g}) (sigmoid)"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LogBasis(Transform):
+    """Positive gain moved by a few numbers through a fixed basis: log x = log x0 + B u, u of length m.
+
+    ``basis`` (n, m) for a gain of n values (e.g. the intervals of a schedule); x0 is the starting value, fixed
+    at :meth:`bind`, so u = 0 is the start. Use it to tune a schedule through a handful of shapes (one level
+    for a group of intervals, a power law t^u over them, ...): the gradient of u sums the per-interval
+    gradients along each shape, which averages their noise. :meth:`inverse` of a value outside the span is
+    the least-squares fit.
+    """
+
+    basis: Any
+    ref: Any = None
+
+    def bind(self, value):
+        v = np.asarray(value, float)
+        b = np.asarray(self.basis, float)
+        if b.ndim != 2 or b.shape[0] != v.size:
+            raise ValueError(f"LogBasis: basis must be ({v.size}, m) for a gain of {v.size} values, got {b.shape}")
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"a LogBasis gain must be finite and > 0, got {v}")
+        return dataclasses.replace(self, ref=v)
+
+    def inverse(self, value):
+        ref = np.asarray(self.bind(value).ref if self.ref is None else self.ref, float)
+        v = np.asarray(value, float)
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"a LogBasis gain must be finite and > 0, got {v}")
+        b = np.asarray(self.basis, float)
+        return np.linalg.lstsq(b, np.log(v / ref).reshape(-1), rcond=None)[0]
+
+    def forward(self, u):
+        ref = jnp.asarray(self.ref, u.dtype)
+        return ref * jnp.exp(jnp.asarray(self.basis, u.dtype) @ u).reshape(ref.shape)
+
+    def describe(self):
+        return f"positive, log x = log x0 + B u with a fixed {np.shape(self.basis)} basis"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScaledSPD(Transform):
+    """SPD matrix rescaled along fixed groups of coordinates: G = D G0 D, D = diag(exp(B u)), u of length m.
+
+    ``basis`` (n, m) for an n x n gain; G0 is the starting value (fixed at :meth:`bind`), u = 0 is the start,
+    and G stays SPD for every u (a congruence by a positive diagonal). E.g. ``np.ones((9, 1))`` is one
+    overall scale (G x exp(2 u)); ``np.kron(np.eye(3), np.ones((3, 1)))`` one scale per block of 3.
+    :meth:`inverse` fits u to the diagonal of the value (least squares in log).
+    """
+
+    basis: Any
+    ref: Any = None
+
+    def bind(self, value):
+        g = np.asarray(value, float)
+        b = np.asarray(self.basis, float)
+        if g.ndim != 2 or g.shape[0] != g.shape[1] or b.ndim != 2 or b.shape[0] != g.shape[0]:
+            raise ValueError(f"ScaledSPD: need a square gain and an (n, m) basis, got {g.shape} and {b.shape}")
+        if np.min(np.linalg.eigvalsh(0.5 * (g + g.T))) <= 0:
+            raise ValueError("a ScaledSPD gain must be symmetric positive definite")
+        return dataclasses.replace(self, ref=g)
+
+    def inverse(self, value):
+        ref = np.asarray(self.bind(value).ref if self.ref is None else self.ref, float)
+        g = np.asarray(value, float)
+        return np.linalg.lstsq(np.asarray(self.basis, float), 0.5 * np.log(np.diag(g) / np.diag(ref)), rcond=None)[0]
+
+    def forward(self, u):
+        d = jnp.exp(jnp.asarray(self.basis, u.dtype) @ u)
+        return d[:, None] * jnp.asarray(self.ref, u.dtype) * d[None, :]
+
+    def describe(self):
+        return f"symmetric positive definite, G = D G0 D with D = diag(exp(B u)), fixed {np.shape(self.basis)} basis"
 
 
 def schedule_mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:
@@ -454,14 +529,19 @@ def schedule_fields(experiment: str) -> Tuple[str, ...]:
 
 
 def for_experiment(experiment: str, *, freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None,
-                   masks: Optional[Mapping[str, Any]] = None,
-                   method: Optional[str] = None) -> Parametrization:
+                   masks: Optional[Mapping[str, Any]] = None, method: Optional[str] = None,
+                   transforms: Optional[Mapping[str, Transform]] = None) -> Parametrization:
     """The Parametrization of an experiment's gains (:data:`GAINS`), with chosen fields frozen or only some
-    tunable, optional masks (field -> bool array over its unconstrained vector, True = tunable), and
-    ``method`` ("log" / "softplus") overriding the map of every positive gain."""
+    tunable, optional masks (field -> bool array over its unconstrained vector, True = tunable),
+    ``method`` ("log" / "softplus") overriding the map of every positive gain, and ``transforms`` (field ->
+    :class:`Transform`) replacing the map of chosen gains (e.g. a :class:`LogBasis` for a schedule)."""
+    known = [g.field for g in gains_of(experiment)]
+    bad = [f for f in (transforms or {}) if f not in known]
+    if bad:
+        raise ValueError(f"transforms for {bad}: not gains of {experiment} (gains: {known})")
     trs = {}
     for g in gains_of(experiment):
-        tr = g.transform
+        tr = (transforms or {}).get(g.field, g.transform)
         if method is not None and isinstance(tr, Positive):
             tr = dataclasses.replace(tr, method=method)
         trs[g.field] = tr

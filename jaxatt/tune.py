@@ -810,7 +810,8 @@ def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_
                  duration: Optional[float] = None, config: Optional[Mapping] = None, freeze: Sequence[str] = (),
                  only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None, method: Optional[str] = None,
                  start=None, refine_schedule: Sequence[float] = (), checkpoint="auto",
-                 step_remat: Optional[bool] = None, dtype=None, devices=None) -> Problem:
+                 step_remat: Optional[bool] = None, dtype=None, devices=None,
+                 transforms: Optional[Mapping[str, P.Transform]] = None) -> Problem:
     """The :class:`Problem` :func:`tune` solves (arguments as there)."""
     overrides = dict(config or {})
     if duration is not None:
@@ -826,7 +827,8 @@ def make_problem(experiment_name: str, *, loss: Optional[str] = None, transient_
         params0 = P.refine_schedule(params0, refine_schedule, fields)
     if s.check_params:
         s.check_params(params0)
-    bound = P.for_experiment(experiment_name, freeze=freeze, only=only, masks=masks, method=method).bind(params0)
+    bound = P.for_experiment(experiment_name, freeze=freeze, only=only, masks=masks, method=method,
+                             transforms=transforms).bind(params0)
     st, en = s.loss_windows["steady"]
     ts, te = s.loss_windows["transient"]
     spec = loss_spec(loss or s.loss_kind, steady_start=st, steady_end=en, transient_start=ts, transient_end=te,
@@ -843,7 +845,7 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
          freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None, masks: Optional[Mapping] = None,
          method: Optional[str] = None, start=None, refine_schedule: Sequence[float] = (), checkpoint="auto",
          step_remat: Optional[bool] = None, dtype=None, callback: Optional[Callable[[dict], None]] = None,
-         quiet: bool = False, devices=None) -> TuneResult:
+         quiet: bool = False, devices=None, transforms: Optional[Mapping[str, P.Transform]] = None) -> TuneResult:
     """Tune an experiment's gains on simulated Monte Carlo runs (``jaxatt tune``).
 
     Args:
@@ -862,7 +864,9 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
         loss: pointwise error (default: the experiment's, "angle_sq" for batista-*); ``transient_weight`` > 0
             adds the transient window (0 to the steady-state start) with that weight.
         duration: simulated horizon (s; default the paper's 3600 s); config: other Config overrides.
-        freeze / only / masks / method: which gains are tuned (see :func:`jaxatt.parametrize.for_experiment`).
+        freeze / only / masks / method / transforms: which gains are tuned and how (see
+            :func:`jaxatt.parametrize.for_experiment`; ``transforms`` e.g. a :class:`~jaxatt.parametrize.LogBasis`
+            that moves a whole schedule through a few numbers).
         start: starting gains (a gains JSON path, a dict of gains, or ``fn(params) -> params``); default the
             paper's.
         refine_schedule: extra switch times (s) inserted into the experiment's gain schedules before tuning
@@ -882,7 +886,7 @@ def tune(experiment_name: str, steps: int = 100, train_runs: int = 32, out_path:
     prob = make_problem(experiment_name, loss=loss, transient_weight=transient_weight, duration=duration,
                         config=config, freeze=freeze, only=only, masks=masks, method=method, start=start,
                         refine_schedule=refine_schedule, checkpoint=checkpoint, step_remat=step_remat, dtype=dtype,
-                        devices=devices)
+                        devices=devices, transforms=transforms)
     s, bound, spec = prob.setup, prob.parametrization, prob.spec
     params0 = bound.base
     train_keys = montecarlo.run_keys(seed, list(range(train_runs)))

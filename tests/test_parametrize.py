@@ -202,3 +202,33 @@ def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
         P.refine_schedule(p, [10.0], ["alpha1", "ref_nav"])
     with pytest.raises(ValueError, match="finite"):
         P.refine_schedule(p, [np.nan], fields)
+
+
+def test_basis_transforms_start_at_the_start_and_stay_valid():
+    """LogBasis / ScaledSPD: u = 0 is the bound start exactly; a value in the span is recovered; every u gives
+    a positive schedule / an SPD matrix; wrong shapes are refused."""
+    rng = np.random.default_rng(3)
+    p = P.refine_schedule(ges_params(), [900.0, 1800.0, 2700.0], ["alpha1", "alpha2"])
+    starts = np.concatenate([[0.0], np.asarray(p.switch_times)])
+    late = starts >= 900.0
+    b = np.stack([~late, late, np.where(late, np.log(np.maximum(starts, 900.0) / 900.0), 0.0)], 1).astype(float)
+    a2 = np.asarray(p.alpha2)
+    tr = P.LogBasis(b).bind(a2)
+    np.testing.assert_array_equal(np.asarray(tr.forward(jnp.zeros(3))), a2)
+    u = np.array([-1.0, 0.5, -1.0])  # early x e^-1, late level x e^0.5, late ~ (t / 900)^-1
+    v = np.asarray(tr.forward(jnp.asarray(u)))
+    np.testing.assert_allclose(v[late] / a2[late], np.exp(0.5) * 900.0 / starts[late], rtol=1e-12)
+    np.testing.assert_allclose(tr.inverse(v), u, atol=1e-12)
+    assert np.all(v > 0)
+    gz = np.asarray(p.gain_z)
+    sz = P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1)))).bind(gz)
+    np.testing.assert_array_equal(np.asarray(sz.forward(jnp.zeros(3))), gz)
+    for _ in range(3):
+        uz = rng.normal(size=3)
+        g = np.asarray(sz.forward(jnp.asarray(uz)))
+        assert np.min(np.linalg.eigvalsh(0.5 * (g + g.T))) > 0
+        np.testing.assert_allclose(sz.inverse(g), uz, atol=1e-12)
+    with pytest.raises(ValueError, match="basis"):
+        P.LogBasis(np.ones((3, 1))).bind(a2)
+    with pytest.raises(ValueError, match="not gains of"):
+        P.for_experiment("batista-ges", transforms={"epsilon": P.LogBasis(np.ones((1, 1)))})
