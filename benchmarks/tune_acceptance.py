@@ -157,10 +157,11 @@ def main(argv=None) -> int:
             for g in P.gains_of(args.experiment):
                 if isinstance(g.transform, P.SPD) and g.field not in args.freeze:
                     masks[g.field] = P.SPD.diagonal_mask(int(np.shape(getattr(s.params, g.field))[0]))
+        # switch times of the tuned schedules (the paper's plus --refine-schedule)
+        times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
         if args.schedule_from is not None:
             from jaxatt import parametrize as P
 
-            times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
             for f in P.schedule_fields(args.experiment):
                 if f not in args.freeze:
                     masks[f] = P.schedule_mask_from(times, args.schedule_from)
@@ -170,7 +171,6 @@ def main(argv=None) -> int:
                 ap.error("--family-basis is for batista-ges, without --diagonal-spd / --schedule-from")
             from ges_refined_start import family_transforms
 
-            times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
             transforms = family_transforms(times)
         t0 = time.perf_counter()
         res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
