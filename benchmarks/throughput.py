@@ -116,7 +116,7 @@ def measure_observer_only(n_steps: int, dtype: str, *, repeats: int, min_time: f
     import jax.numpy as jnp
 
     from jaxatt import montecarlo
-    from jaxatt.observers.base import ImuSample
+    from jaxatt.types import ImuSample
 
     exp = _experiment()
     cfg = exp.Config()

@@ -1,10 +1,21 @@
 """jaxatt: fast, batched, differentiable attitude observers in JAX.
 
-Conventions: quaternions (w, x, y, z); R maps body to the reference frame; SI units (rad/s, s); frames
-named at every public function (the Batista papers simulate in NED, BROAD uses ENU).
-"""
-from . import integrate, metrics, montecarlo, observers, sim, so3  # noqa: F401
-from .montecarlo import monte_carlo, run, simulate  # noqa: F401
-from .observers.base import ImuSample, Observer  # noqa: F401
+Front door (:mod:`jaxatt.api`): ``jaxatt.filter(name_or_observer, gyr, acc, mag, dt=...)`` on your own arrays,
+``jaxatt.broad_score`` / ``jaxatt.fit`` on BROAD trials (``jaxatt.data.broad.load``), ``jaxatt.monte_carlo`` on a
+simulated AHRS scenario; the papers' studies in :mod:`jaxatt.studies`; observers in :mod:`jaxatt.observers`
+(registry: :mod:`jaxatt.observers.registry`).
 
-__version__ = "0.1.0"
+Conventions: quaternions (w, x, y, z); R maps sensor/body to the navigation frame; SI units (rad/s, m/s^2, s);
+frames named at every public function (the Batista papers simulate in NED, BROAD uses ENU; :mod:`jaxatt.frames`).
+jaxatt never switches JAX's float64 mode: enable it with ``jax.config.update("jax_enable_x64", True)``.
+"""
+__version__ = "0.2.0"
+
+from . import data, engine, frames, integrate, metrics, montecarlo, observers, sim, so3  # noqa: E402
+from .api import BroadScore, Estimate, broad_score, filter, monte_carlo  # noqa: E402
+from .fit.fitter import FitResult, fit  # noqa: E402
+from .types import ImuSample, Interval, Observer, VectorSample  # noqa: E402
+
+__all__ = ["filter", "broad_score", "fit", "monte_carlo", "Estimate", "BroadScore", "FitResult", "ImuSample",
+           "VectorSample", "Interval", "Observer", "data", "engine", "frames", "integrate", "metrics", "montecarlo",
+           "observers", "sim", "so3", "__version__"]

@@ -198,14 +198,13 @@ def sufficient_excitation(t, *, ref_inertial=None, inertial_meas=None, ref_body=
 def excitation_from_samples(samples, *, window: Optional[float] = None, params=None,
                             imu_fields: Sequence[str] = ("acc", "mag"), gains=None, gyro_bias=None, stride: int = 1,
                             rule: str = "trapezoid") -> Excitation:
-    """Excitation of a log: a stacked :class:`jaxatt.observers.complementary.VectorSample` or
-    :class:`jaxatt.observers.base.ImuSample` (constant references ``params.ref_inertial`` in the order of
+    """Excitation of a log: a stacked :class:`jaxatt.types.VectorSample` or
+    :class:`jaxatt.types.ImuSample` (constant references ``params.ref_inertial`` in the order of
     ``imu_fields``). References a VectorSample does not carry come from ``params``. ``window=None`` gives
     :func:`sufficient_excitation` (from the first sample); otherwise :func:`excitation`.
     ``gains="params"`` uses params.k, params.l as the q of eq. (12).
     """
-    from .observers.base import ImuSample
-    from .observers.complementary import VectorSample
+    from .types import ImuSample, VectorSample
 
     if isinstance(gains, str):
         if gains != "params" or params is None:

@@ -1,22 +1,34 @@
-"""Command line: ``jaxatt reproduce EXPERIMENT`` and ``jaxatt simulate --observer NAME``.
+"""Command line: ``jaxatt filter``, ``reproduce``, ``simulate``, ``tune``, ``evaluate``, ``broad``, ``broad-tune``,
+``excitation``. Thin: it parses, calls the library (:mod:`jaxatt.api`, :mod:`jaxatt.studies`, :mod:`jaxatt.fit`),
+prints and writes files.
 
-Every run enables float64 in JAX: the simulated truth and sensors are always computed in float64, and the
-observer runs in float64 unless ``--float32`` is given.
+Every command enables float64 in JAX (the library never does): simulated truth and sensors are float64, observers
+run in float64 unless ``--float32``. Bad input is one line on stderr naming the flag or file and exit status 2
+(``--debug`` shows the traceback); a non-finite result exits 1; Ctrl-C exits 130 keeping what was finished.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
-import time
 from typing import List, Optional
 
 import numpy as np
 
 __all__ = ["main"]
 
+SIMULATE_OBSERVERS = ("batista-ges", "batista-so3", "complementary")
+PAPER_STUDIES = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3", "nlio-case4", "nlio-simb")
+TUNABLE_STUDIES = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3")
+SCENARIOS = ("rotating", "switching", "constant", "two-constant", "body-fixed")
 
+
+class UserError(Exception):
+    """A bad input caught by the CLI (one line, exit 2)."""
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Argument types
+# ------------------------------------------------------------------------------------------------------------
 def _floats(n: int):
     def parse(s: str):
         try:
@@ -32,115 +44,142 @@ def _floats(n: int):
     return parse
 
 
-def _positive(s: str) -> float:
-    v = float(s)
-    if not np.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {s}")
+def _number(s: str, *, low: float, strict: bool, what: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {s!r}") from None
+    if not np.isfinite(v) or (v <= low if strict else v < low):
+        raise argparse.ArgumentTypeError(f"must be a {what} number, got {s}")
     return v
+
+
+def _positive(s: str) -> float:
+    return _number(s, low=0.0, strict=True, what="positive")
 
 
 def _nonneg(s: str) -> float:
-    v = float(s)
-    if not np.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative number, got {s}")
+    return _number(s, low=0.0, strict=False, what="non-negative")
+
+
+def _count(minimum: int):
+    def parse(s: str) -> int:
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {s}")
+        return v
+
+    return parse
+
+
+def _latitude(s: str) -> float:
+    v = _number(s, low=-np.inf, strict=False, what="finite")
+    if not -90.0 <= v <= 90.0:
+        raise argparse.ArgumentTypeError(f"must be in [-90, 90] degrees, got {s}")
     return v
 
 
-def _runs(s: str) -> int:
-    v = int(s)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"--runs must be >= 1, got {s}")
-    return v
-
-
-SIMULATED = ("batista-ges", "batista-so3")
-SIMULATE_OBSERVERS = SIMULATED + ("complementary",)
-NLIO_CASES = ("nlio-case1", "nlio-case2", "nlio-case3", "nlio-case4", "nlio-simb")
-
-
-def _experiment(name: str):
-    from .experiments import REGISTRY
-
-    return REGISTRY[name]
-
-
-def _common(p: argparse.ArgumentParser):
-    p.add_argument("--runs", type=_runs, default=100, help="Monte Carlo runs (default 100)")
-    p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default 3600)")
+# ------------------------------------------------------------------------------------------------------------
+# The parser
+# ------------------------------------------------------------------------------------------------------------
+def _mc_flags(p: argparse.ArgumentParser, *, study_flags: bool = True):
+    p.add_argument("--runs", type=_count(1), default=100, help="Monte Carlo runs (default 100)")
+    p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default: the paper's)")
     p.add_argument("--seed", type=int, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
-    p.add_argument("--hold", choices=["zoh", "linear"], default="zoh",
-                   help="sensor samples held over the RK4 step (zoh, default) or interpolated to the stage times")
-    p.add_argument("--x1-init", choices=["first-sample", "zero"], default=None,
-                   help="batista-ges: x1^(0) = first magnetometer sample (default; reproduces the paper) or zero "
-                        "(literal)")
-    p.add_argument("--m-init", choices=["rescaled", "first-sample"], default=None,
-                   help="batista-so3: m^(0) = first sample rescaled to |I_m| (default; Theorem 1) or the raw first "
-                        "sample (literal)")
-    p.add_argument("--integrator", choices=["lie", "rk4"], default=None,
-                   help="batista-so3: RKMK-4 on SO(3) (default) or plain RK4 on the 15 numbers (the paper's)")
+    p.add_argument("--hold", choices=["zoh", "linear"], default=None,
+                   help="sensor samples held over the RK4 step (zoh) or interpolated to the stage times (linear); "
+                        "default: the study's")
+    if study_flags:
+        p.add_argument("--x1-init", choices=["first-sample", "zero"], default=None,
+                       help="batista-ges: x1^(0) = first magnetometer sample (default; reproduces the paper) or zero")
+        p.add_argument("--m-init", choices=["rescaled", "first-sample"], default=None,
+                       help="batista-so3: m^(0) = first sample rescaled to |I_m| (default; Theorem 1) or the raw sample")
+        p.add_argument("--integrator", choices=["lie", "rk4"], default=None,
+                       help="batista-so3: RKMK-4 on SO(3) (default) or plain RK4 on the 15 numbers (the paper's)")
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float32", action="store_true", help="run the observer in float32")
     prec.add_argument("--float64", action="store_true", help="run the observer in float64 (default)")
-    p.add_argument("--chunk", type=_runs, default=250, help="runs vmapped together (memory vs speed)")
+    p.add_argument("--chunk", type=_count(1), default=250, help="runs vmapped together (memory vs speed)")
     p.add_argument("--json", default=None, help="write results JSON here (updated after every chunk)")
-    p.add_argument("--plot", default=None, help="write a PNG of the paper's convergence figures here")
+    p.add_argument("--plot", default=None, help="write a PNG of the study's figure here")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="jaxatt", description="Batched, differentiable attitude observers in JAX.")
+    ap.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = ap.add_subparsers(dest="command", required=True)
 
+    fp = sub.add_parser("filter", help="run an observer on your own log (CSV / NPZ / BROAD HDF5) and write estimates")
+    fp.add_argument("--log", required=True, help="CSV or NPZ log (jaxatt.data.logs) or a BROAD .hdf5 trial")
+    fp.add_argument("--observer", default="robust",
+                    help="a registered observer (robust, mahony, mekf, nlio, ...) or module:attr of your own "
+                         "Observer / registry Entry (default robust)")
+    fp.add_argument("--params", default=None, help="module:attr of the params of your own observer")
+    fp.add_argument("--gains", default=None, help="gains file (jaxatt tune / broad-tune / fit) to use")
+    fp.add_argument("--frame", choices=["ENU", "NED", "NWU"], default="ENU",
+                    help="navigation frame of the written quaternions (default ENU)")
+    fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
+    fp.add_argument("--float32", action="store_true", help="run the filter in float32")
+    fp.add_argument("--out", required=True, help="CSV of t, qw, qx, qy, qz and the observer's flags")
+
     rp = sub.add_parser("reproduce", help="run a paper's simulation study and compare with its published numbers")
-    rp.add_argument("experiment", choices=list(SIMULATED) + list(NLIO_CASES))
-    rp.add_argument("--aggressive", action="store_true", help="the 20x faster angular velocity (Section IV / 4)")
-    _common(rp)
+    rp.add_argument("experiment", choices=PAPER_STUDIES)
+    rp.add_argument("--aggressive", action="store_true", help="batista-*: the 20x faster angular velocity")
+    _mc_flags(rp)
 
     sp = sub.add_parser("simulate", help="run an observer on a scenario you define with flags")
-    sp.add_argument("--observer", choices=list(SIMULATE_OBSERVERS), required=True)
-    sp.add_argument("--trajectory", choices=["slow", "aggressive"], default="slow")
-    sp.add_argument("--rate-scale", type=float, default=1.0, help="multiplies the angular-velocity profile")
-    sp.add_argument("--latitude", type=float, default=None, help="latitude in degrees (north positive)")
-    sp.add_argument("--reference", type=_floats(3), default=None,
-                    help="inertial vector measured by the vector sensor, X,Y,Z in nT, NED (default IGRF-11 Lisbon)")
-    sp.add_argument("--gyro-arw", type=_nonneg, default=4.0, help="gyro angle random walk, deg/h/sqrt(Hz)")
-    sp.add_argument("--gyro-bias", type=_floats(3), default=(0.0, 0.0, 0.0), help="gyro bias X,Y,Z rad/s")
-    sp.add_argument("--mag-noise", type=_nonneg, default=150.0, help="vector-sensor noise std, nT")
-    sp.add_argument("--noise-scale", type=_nonneg, default=1.0, help="multiplies all noise (0 = noise-free)")
-    sp.add_argument("--dt", type=_positive, default=0.01, help="sample period, s")
-    sp.add_argument("--window-start", type=_nonneg, default=None, help="start of the steady-state window, s")
-    sp.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major)")
-    sp.add_argument("--r0-euler", type=_floats(3), default=None, help="initial R^ as ZYX roll,pitch,yaw in degrees")
-    sp.add_argument("--x2-0", type=_floats(3), default=None, help="batista-ges: initial x2^, nT/s")
-    sp.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
-    sp.add_argument("--epsilon", type=float, default=None,
-                    help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0,1) (default 0.5)")
-    g = sp.add_argument_group("complementary (Trumpf et al. 2012) observer")
-    g.add_argument("--scenario", choices=["rotating", "switching", "constant", "two-constant", "body-fixed"],
-                   default="rotating", help="vector-measurement scenario (default rotating)")
-    g.add_argument("--form", choices=["matrix", "quaternion"], default="matrix", help="eq. (10) or eq. (18)")
-    g.add_argument("--gain", type=_positive, default=0.6, help="gain k_i = l_j of every measurement, 1/s")
-    g.add_argument("--k-i", type=_nonneg, default=0.0, help="gyro-bias integral gain, 1/s (0 = no bias estimate)")
-    g.add_argument("--gyro-noise", type=_nonneg, default=0.0, help="gyro white noise per sample, rad/s")
-    g.add_argument("--vector-noise", type=_nonneg, default=0.0, help="noise per component of the unit vectors")
-    _common(sp)
+    sp.add_argument("--observer", choices=SIMULATE_OBSERVERS, required=True)
+    g = sp.add_argument_group("batista-ges / batista-so3 (Section IV / 4 platform)")
+    g.add_argument("--trajectory", choices=["slow", "aggressive"], default=None)
+    g.add_argument("--rate-scale", type=_nonneg, default=None, help="multiplies the angular-velocity profile")
+    g.add_argument("--latitude", type=_latitude, default=None, help="latitude in degrees (north positive)")
+    g.add_argument("--reference", type=_floats(3), default=None,
+                   help="inertial vector measured by the vector sensor, X,Y,Z in nT, NED (default IGRF-11 Lisbon)")
+    g.add_argument("--gyro-arw", type=_nonneg, default=None, help="gyro angle random walk, deg/h/sqrt(Hz) (default 4)")
+    g.add_argument("--mag-noise", type=_nonneg, default=None, help="vector-sensor noise std, nT (default 150)")
+    g.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major)")
+    g.add_argument("--x2-0", type=_floats(3), default=None, help="batista-ges: initial x2^, nT/s")
+    g.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
+    g.add_argument("--epsilon", type=_positive, default=None,
+                   help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0, 1) (default 0.5)")
+    c = sp.add_argument_group("complementary (Trumpf et al. 2012) observer")
+    c.add_argument("--scenario", choices=SCENARIOS, default=None, help="vector-measurement scenario (default rotating)")
+    c.add_argument("--form", choices=["matrix", "quaternion"], default=None, help="eq. (10) or eq. (18)")
+    c.add_argument("--gain", type=_positive, default=None, help="gain k_i = l_j of every measurement, 1/s (0.6)")
+    c.add_argument("--k-i", type=_nonneg, default=None, help="gyro-bias integral gain, 1/s (0 = no bias estimate)")
+    c.add_argument("--gyro-noise", type=_nonneg, default=None, help="gyro white noise per sample, rad/s")
+    c.add_argument("--vector-noise", type=_nonneg, default=None, help="noise per component of the unit vectors")
+    s = sp.add_argument_group("both")
+    s.add_argument("--gyro-bias", type=_floats(3), default=None, help="gyro bias X,Y,Z, rad/s")
+    s.add_argument("--noise-scale", type=_nonneg, default=None, help="multiplies all noise (0 = noise-free)")
+    s.add_argument("--dt", type=_positive, default=None, help="sample period, s")
+    s.add_argument("--window-start", type=_nonneg, default=None, help="start of the steady-state window, s")
+    s.add_argument("--r0-euler", type=_floats(3), default=None, help="initial R^ as ZYX roll,pitch,yaw in degrees")
+    _mc_flags(sp)
 
-    tp = sub.add_parser("tune", help="tune an experiment's gains by gradient descent through the Monte Carlo scan")
-    tp.add_argument("--experiment", required=True, help="batista-ges, batista-so3, ... (see jaxatt.tune)")
-    tp.add_argument("--steps", type=int, default=100, help="optimiser steps")
-    tp.add_argument("--train-runs", type=int, default=32, help="training seeds (at most 64 in the acceptance study)")
+    tp = sub.add_parser("tune", help="tune a study's gains by gradient descent through the Monte Carlo scan")
+    tp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
+    tp.add_argument("--steps", type=_count(0), default=100, help="optimiser steps")
+    tp.add_argument("--train-runs", type=_count(1), default=32, help="training seeds")
+    tp.add_argument("--val-runs", type=_count(0), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--lr", type=_positive, default=0.05)
-    tp.add_argument("--refine-schedule", type=float, nargs="+", default=(), metavar="T",
-                    help="extra switch times (s) for the experiment's gain schedules, tuned from the paper's values")
-    tp.add_argument("--out", default="gains.json", help="gains + history JSON, rewritten as the loop goes")
+    tp.add_argument("--refine-schedule", type=_positive, nargs="+", default=(), metavar="T",
+                    help="extra switch times (s) for the study's gain schedules, tuned from the paper's values")
+    tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
+    tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
+    tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     tp.add_argument("--quiet", action="store_true")
 
-    vp = sub.add_parser("evaluate", help="Monte Carlo of an experiment with a gains file (same JSON as reproduce)")
-    vp.add_argument("--experiment", required=True)
-    vp.add_argument("--gains", default=None, help="gains JSON from jaxatt tune (default: the paper's gains)")
-    vp.add_argument("--runs", type=_runs, default=100)
+    vp = sub.add_parser("evaluate", help="Monte Carlo of a study with a gains file (same JSON as reproduce)")
+    vp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
+    vp.add_argument("--gains", default=None, help="gains file (default: the paper's gains)")
+    vp.add_argument("--runs", type=_count(1), default=100)
     vp.add_argument("--seed", type=int, default=1)
     vp.add_argument("--duration", type=_positive, default=None)
     vp.add_argument("--json", default=None)
@@ -148,9 +187,9 @@ def _parser() -> argparse.ArgumentParser:
 
     bp = sub.add_parser("broad", help="run an observer on BROAD trials and print the BROAD metric")
     bp.add_argument("--data-dir", required=True, help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
-    bp.add_argument("--observer", default="robust", help="robust, mahony, complementary, ...")
-    bp.add_argument("--gains", default=None, help="gains JSON from jaxatt broad-tune (default: shipped gains)")
-    bp.add_argument("--trials", nargs="*", default=None, help="trial names or numbers (default: all)")
+    bp.add_argument("--observer", default="robust", help="a registered observer (default robust)")
+    bp.add_argument("--gains", default=None, help="gains file (default: the observer's shipped or default gains)")
+    bp.add_argument("--trials", nargs="*", default=None, help="trial names, numbers, groups or fold1/fold2")
     bp.add_argument("--json", default=None)
     bp.add_argument("--float32", action="store_true")
 
@@ -158,15 +197,19 @@ def _parser() -> argparse.ArgumentParser:
     bt.add_argument("--data-dir", required=True)
     bt.add_argument("--observer", default="robust")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
-    bt.add_argument("--steps", type=int, default=150)
+    bt.add_argument("--steps", type=_count(0), default=150)
     bt.add_argument("--lr", type=_positive, default=0.05, help="Adam learning rate on log-gains")
-    bt.add_argument("--init-gains", default=None, help="start from this gains JSON (default: untuned defaults)")
+    bt.add_argument("--init-gains", default=None, help="start from this gains file (default: untuned defaults)")
+    bt.add_argument("--float64", action="store_true", help="tune in float64 (default float32: faster)")
     bt.add_argument("--out", default="gains.json")
+    bt.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
+    bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    bt.add_argument("--quiet", action="store_true")
 
     ep = sub.add_parser("excitation", help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
                                            "Lemmas 3.4, 4.2, conditions 6, 13) of a scenario or a log")
     src = ep.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scenario", choices=["rotating", "switching", "constant", "two-constant", "body-fixed"])
+    src.add_argument("--scenario", choices=SCENARIOS)
     src.add_argument("--log", help="CSV or NPZ log (jaxatt.data.logs): acc and mag vs constant references")
     ep.add_argument("--duration", type=_positive, default=60.0, help="simulated duration of a scenario, s")
     ep.add_argument("--dt", type=_positive, default=0.01, help="sample period of a scenario, s")
@@ -181,140 +224,313 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _environment() -> dict:
-    from .report import environment
-
-    return environment()
-
-
-def _summarise(per_run: dict) -> dict:
-    out = {}
-    for k, v in per_run.items():
-        v = np.asarray(v, float)
-        out[k] = {"mean": float(np.mean(v)), "std": float(np.std(v)), "min": float(np.min(v)),
-                  "max": float(np.max(v)), "per_run": v.tolist()}
-    return out
-
-
-def _write_json(path: Optional[str], payload: dict):
-    if not path:
-        return
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=1)
-    os.replace(tmp, path)  # atomic: an interrupted write never leaves a broken file
-
-
-def _table(rows, values: dict, paper: dict, units: dict) -> str:
-    lines = [f"{'quantity':34s} {'paper':>10s} {'measured':>12s} {'(std over runs)':>16s} {'ratio':>7s}"]
-    for key, label in rows:
-        if key not in paper and key not in units:
-            continue
-        m = units.get(key, "")
-        meas = values.get(key)
-        pv = paper.get(key)
-        ratio = f"{meas['mean'] / pv:7.2f}" if (pv and meas) else ""
-        lines.append(f"{label + (' [' + m + ']' if m else ''):34s} {pv if pv is not None else '-':>10} "
-                     f"{meas['mean']:12.4g} {meas['std']:16.3g} {ratio}")
-    return "\n".join(lines)
-
-
-
-def _run(args, E, cfg, paper: dict, title: str) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+# ------------------------------------------------------------------------------------------------------------
+# reproduce / simulate
+# ------------------------------------------------------------------------------------------------------------
+def _dtype(args):
     import jax.numpy as jnp
 
-    from . import montecarlo, plot
-
-    dtype = jnp.float32 if args.float32 else jnp.float64
-    scn, obs = E.scenario(cfg), E.observer(cfg)
-    params = E.params(cfg, dtype=jnp.float64)
-    E.check_params(params)
-    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg._asdict().items()}
-    config.update(runs=args.runs, seed=args.seed, dtype=str(np.dtype(dtype)), chunk=args.chunk)
-    base = {"experiment": title, "config": config, "environment": _environment(), "notes": E.notes(cfg)}
-    t0 = time.perf_counter()
-
-    def on_chunk(res):
-        if not args.quiet:
-            print(f"  {len(res.run_indices)}/{args.runs} runs done, {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-        _write_json(args.json, {**base, "complete": res.complete, "runs_done": len(res.run_indices),
-                                "metrics": _summarise(res.per_run), "timing": {"wall_s": time.perf_counter() - t0}})
-
-    res = montecarlo.monte_carlo(scn, obs, params, runs=args.runs, duration=cfg.duration, dt=cfg.dt, seed=args.seed,
-                                 errors_fn=E.errors, window_start=cfg.window_start, hold=cfg.hold, chunk=args.chunk,
-                                 dtype=dtype, on_chunk=on_chunk)
-    wall = time.perf_counter() - t0
-    summary = _summarise(res.per_run)
-    n_steps = int(round(cfg.duration / cfg.dt))
-    timing = {"wall_s": wall, "runs": len(res.run_indices), "steps_per_run": n_steps,
-              "run_steps_per_s": len(res.run_indices) * n_steps / wall}
-    units = dict(E.UNITS, final_angle_error_deg="deg", max_angle_error_deg="deg")
-    print(f"{title}: {len(res.run_indices)} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, observer in "
-          f"{np.dtype(dtype).name}, window t >= {cfg.window_start:g} s"
-          + ("" if res.complete else "  [INTERRUPTED: partial results]"))
-    for n in base["notes"][:3]:
-        print(f"  {n}")
-    print(_table(E.TABLE_ROWS, summary, paper, units))
-    print(f"final angle error: max over runs {summary['final_angle_error_deg']['max']:.4g} deg")
-    print(f"wall {wall:.1f} s, {timing['run_steps_per_s']:.3g} run-steps/s (compile included)")
-    payload = {**base, "complete": res.complete, "runs_done": len(res.run_indices), "metrics": summary,
-               "paper": paper, "timing": timing}
-    if args.plot:
-        summ, trace, _ = montecarlo.simulate(scn, obs, params, duration=cfg.duration, dt=cfg.dt, seed=args.seed,
-                                             errors_fn=E.errors, window_start=cfg.window_start, hold=cfg.hold,
-                                             trace_every=10, dtype=dtype)
-        plot.convergence_figure(trace, args.plot, title=f"{title} (run 0)", panels=E.PLOT_PANELS,
-                                steady_from_s=cfg.window_start)
-        print(f"plot written to {args.plot}")
-        payload["plot"] = args.plot
-    _write_json(args.json, payload)
-    if args.json:
-        print(f"results written to {args.json}")
-    return 0 if res.complete else 130
+    return jnp.float32 if getattr(args, "float32", False) else jnp.float64
 
 
-def _observer_settings(args, E, name: str) -> dict:
-    """Observer-specific flags mapped onto the experiment's Config; a flag of another observer is an error."""
-    given = {"x1_init": None if args.x1_init is None else args.x1_init.replace("-", "_"),
-             "m_init": None if args.m_init is None else args.m_init.replace("-", "_"),
-             "integrator": args.integrator,
-             "x2_0": getattr(args, "x2_0", None), "v_hat_0": getattr(args, "v0", None),
-             "epsilon": getattr(args, "epsilon", None)}
-    flags = {"x1_init": "--x1-init", "m_init": "--m-init", "integrator": "--integrator", "x2_0": "--x2-0",
-             "v_hat_0": "--v0", "epsilon": "--epsilon"}
-    kw = {}
-    for field, v in given.items():
+def _given(args, mapping) -> dict:
+    """{config field: value} of the flags the user gave (None = not given)."""
+    return {field: getattr(args, attr) for attr, field in mapping.items() if getattr(args, attr, None) is not None}
+
+
+_BATISTA_FLAGS = {"x1_init": "x1_init", "m_init": "m_init", "integrator": "integrator", "x2_0": "x2_0",
+                  "v0": "v_hat_0", "epsilon": "epsilon"}
+_FLAG = {"x1_init": "--x1-init", "m_init": "--m-init", "integrator": "--integrator", "x2_0": "--x2-0", "v0": "--v0",
+         "epsilon": "--epsilon", "trajectory": "--trajectory", "rate_scale": "--rate-scale", "latitude": "--latitude",
+         "reference": "--reference", "gyro_arw": "--gyro-arw", "mag_noise": "--mag-noise", "r0": "--r0",
+         "scenario": "--scenario", "form": "--form", "gain": "--gain", "k_i": "--k-i", "gyro_noise": "--gyro-noise",
+         "vector_noise": "--vector-noise", "aggressive": "--aggressive", "hold": "--hold", "plot": "--plot"}
+
+
+def _refuse(args, attrs, name):
+    for a in attrs:
+        v = getattr(args, a, None)
+        if v not in (None, False, ()):
+            raise UserError(f"{_FLAG.get(a, '--' + a.replace('_', '-'))} does not apply to {name}")
+
+
+def _study_config(study, args, extra: dict):
+    """The study's Config from the flags; a flag of another study is refused."""
+    fields = set(study.config().__class__._fields)
+    kw = dict(extra)
+    for attr, field in _BATISTA_FLAGS.items():
+        v = getattr(args, attr, None)
         if v is None:
             continue
-        if field not in E.Config._fields:
-            raise ValueError(f"{flags[field]} does not apply to {name}")
-        kw[field] = v
-    return kw
+        if field not in fields:
+            raise UserError(f"{_FLAG[attr]} does not apply to {study.name}")
+        kw[field] = v.replace("-", "_") if isinstance(v, str) else v
+    if args.duration is not None:
+        kw["duration"] = args.duration
+    if args.hold is not None:
+        kw["hold"] = args.hold
+    try:
+        return study.config(**kw)
+    except ValueError as e:
+        raise UserError(str(e)) from None
 
 
-def _complementary_config(args, E, dur):
-    kw = dict(scenario=args.scenario.replace("-", "_"), form=args.form, gain=args.gain, k_i=args.k_i,
-              gyro_bias_deg_s=tuple(np.rad2deg(args.gyro_bias)), gyro_noise_std=args.gyro_noise,
-              meas_noise_std=args.vector_noise, noise_scale=args.noise_scale, hold=args.hold, duration=dur, dt=args.dt,
-              window_start=args.window_start if args.window_start is not None else 2.0 * dur / 3.0)
-    if args.r0_euler is not None:
-        kw["r_hat_0_euler_deg"] = args.r0_euler
-    if args.r0 is not None:
-        raise ValueError("--r0 does not apply to complementary; use --r0-euler")
-    return E.Config(**kw)
+def _reproduce(args) -> int:
+    from . import studies
+
+    study = studies.get(args.experiment)
+    extra = {}
+    if args.experiment.startswith("batista"):
+        extra["trajectory"] = "aggressive" if args.aggressive else "slow"
+    elif args.aggressive:
+        raise UserError(f"--aggressive does not apply to {args.experiment}")
+    cfg = _study_config(study, args, extra)
+    title = f"{args.experiment} reproduce" + (f" ({cfg.trajectory})" if hasattr(cfg, "trajectory") else "")
+    return _finish_study(studies.reproduce(study, cfg, runs=args.runs, seed=args.seed, chunk=args.chunk,
+                                           dtype=_dtype(args), json_path=args.json, plot_path=args.plot,
+                                           quiet=args.quiet, progress=_progress(args), title=title))
 
 
+def _simulate(args) -> int:
+    from . import so3, studies
+
+    name = args.observer
+    study = studies.get(name)
+    r0_euler = getattr(args, "r0_euler", None)
+    if name == "complementary":
+        _refuse(args, ["trajectory", "rate_scale", "latitude", "reference", "gyro_arw", "mag_noise", "r0", "x1_init",
+                       "m_init", "integrator", "x2_0", "v0", "epsilon"], name)
+        kw = _given(args, {"scenario": "scenario", "form": "form", "gain": "gain", "k_i": "k_i",
+                           "gyro_noise": "gyro_noise_std", "vector_noise": "meas_noise_std",
+                           "noise_scale": "noise_scale", "dt": "dt", "window_start": "window_start"})
+        if "scenario" in kw:
+            kw["scenario"] = kw["scenario"].replace("-", "_")
+        if args.gyro_bias is not None:
+            kw["gyro_bias_deg_s"] = tuple(np.rad2deg(args.gyro_bias))
+        if r0_euler is not None:
+            kw["r_hat_0_euler_deg"] = r0_euler
+        title = f"complementary simulate ({kw.get('scenario', 'rotating')})"
+    else:
+        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise"], name)
+        kw = _given(args, {"trajectory": "trajectory", "rate_scale": "rate_scale", "latitude": "latitude_deg",
+                           "reference": "reference_nT", "gyro_arw": "gyro_arw_deg_h_rthz", "mag_noise": "mag_noise_nT",
+                           "noise_scale": "noise_scale", "gyro_bias": "gyro_bias", "dt": "dt",
+                           "window_start": "window_start"})
+        if args.r0 is not None and r0_euler is not None:
+            raise UserError("give --r0 or --r0-euler, not both")
+        if args.r0 is not None:
+            kw["r_hat_0"] = args.r0
+        if r0_euler is not None:
+            kw["r_hat_0"] = tuple(np.asarray(so3.euler_zyx_to_matrix(*np.deg2rad(r0_euler))).reshape(9))
+        title = f"{name} simulate"
+    cfg = _study_config(study, args, kw)
+    return _finish_study(studies.reproduce(study, cfg, runs=args.runs, seed=args.seed, chunk=args.chunk,
+                                           dtype=_dtype(args), json_path=args.json, plot_path=args.plot,
+                                           quiet=args.quiet, progress=_progress(args), title=title))
+
+
+def _progress(args):
+    return None if getattr(args, "quiet", False) or not sys.stderr.isatty() else True
+
+
+def _finish_study(payload: dict) -> int:
+    if payload.get("nonfinite"):
+        print(f"jaxatt: error: non-finite result: {payload['nonfinite']}", file=sys.stderr)
+        return 1
+    return 0 if payload["complete"] else 130
+
+
+# ------------------------------------------------------------------------------------------------------------
+# tune / evaluate
+# ------------------------------------------------------------------------------------------------------------
+def _tune(args) -> int:
+    from .fit import fitter
+
+    config = {"duration": args.duration} if args.duration is not None else None
+    res = fitter.fit(None, None, args.experiment, steps=args.steps, train_runs=args.train_runs, val_runs=args.val_runs,
+                     out=args.out, seed=args.seed, lr=args.lr, config=config, refine_schedule=args.refine_schedule,
+                     resume=args.resume, overwrite=args.overwrite, quiet=args.quiet)
+    print(f"gains written to {args.out} ({res.status})")
+    return _fit_status(res)
+
+
+def _fit_status(res) -> int:
+    if res.status == "interrupted":
+        return 130
+    if res.status == "non-finite":
+        print("jaxatt: error: the loss or its gradient was not finite three steps in a row", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _evaluate(args) -> int:
+    from . import io, studies
+    from .fit import gainsfile
+
+    study = studies.get(args.experiment)
+    io.check_output_path(args.json, "--json")
+    cfg = study.config(**({"duration": args.duration} if args.duration is not None else {}))
+    s = study.setup(**{k: v for k, v in cfg._asdict().items()})
+    params, source, warn = s.params, "paper", None
+    if args.gains:
+        d = gainsfile.read(args.gains)
+        if d.get("study") not in (None, study.name) or d["observer"] != s.entry:
+            raise UserError(f"--gains {args.gains}: holds gains of {d['observer']!r} "
+                            f"({d.get('study') or 'recorded data'}), not of {study.name}")
+        params = gainsfile.apply(s.params, d["gains"], source=f"--gains {args.gains}")
+        source = args.gains
+        tun = d.get("settings", d.get("tuning", {}))
+        if tun.get("seed") == args.seed:
+            used = set(range(*tun.get("train_run_indices", [0, 0]))) | set(range(*tun.get("val_run_indices", [0, 0])))
+            if used & set(range(args.runs)):
+                warn = (f"warning: {len(used & set(range(args.runs)))} evaluation runs were used for tuning (same seed "
+                        f"{args.seed}); use another --seed for held-out numbers")
+    if warn and not args.quiet:
+        print(warn, file=sys.stderr)
+    payload = studies.evaluate(study, params, runs=args.runs, seed=args.seed, json_path=args.json, cfg=cfg,
+                               gains_source=source, quiet=args.quiet)
+    return _finish_study(payload)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# BROAD
+# ------------------------------------------------------------------------------------------------------------
+def _broad_table(title: str, score) -> None:
+    from .data.broad import ANCHORS
+
+    print(f"\n{title}")
+    print(f"{'trial':48s} {'group':11s} {'total':>7s} {'heading':>8s} {'incl':>7s}")
+    for n, v in score.trials.items():
+        print(f"{n:48s} {v.group:11s} {v.total_rmse_deg:7.2f} {v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}")
+    for g, v in score.groups.items():
+        print(f"{'mean ' + g + ' (' + str(v.n_trials) + ' trials)':60s} {v.total_rmse_deg:7.2f} "
+              f"{v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}")
+    print("anchors (mean total RMSE, deg): " + "; ".join(
+        f"{k}: {v['undisturbed']:.2f} / {v['disturbed']:.2f}" for k, v in ANCHORS.items()) + "  (undisturbed / disturbed)")
+
+
+def _broad(args) -> int:
+    from . import api, io
+    from .data import broad
+
+    io.check_output_path(args.json, "--json")
+    trials = broad.load(args.data_dir, args.trials)
+    dtype = "float32" if args.float32 else "float64"
+    score = api.broad_score(args.observer, args.gains, trials, dtype=dtype)
+    shipped = getattr(api.registry.get(args.observer), "shipped", None) if args.observer in api.registry.INDEX else None
+    source = args.gains or (f"shipped gains {shipped}" if shipped else "default gains")
+    _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
+    params = api.resolve_observer(args.observer, args.gains)[1]
+    io.write_json(args.json, {
+        "observer": score.observer, "gains": {k: np.asarray(v).tolist() for k, v in params._asdict().items()},
+        "gains_source": source, "dtype": dtype, "wall_s": score.wall_s, "anchors": broad.ANCHORS,
+        "data": broad.ATTRIBUTION, "environment": io.environment(),
+        "trials": {n: {"group": s.group, **{m: getattr(s, m) for m in broad.METRICS}} for n, s in score.trials.items()},
+        "groups": {g: {"n_trials": s.n_trials, **{m: getattr(s, m) for m in broad.METRICS}}
+                   for g, s in score.groups.items()}})
+    return 0
+
+
+def _broad_tune(args) -> int:
+    from .data import broad
+    from .fit import fitter
+
+    trials = broad.load(args.data_dir, args.trials)
+    res = fitter.fit(args.observer, None, trials, steps=args.steps, lr=args.lr, start=args.init_gains, out=args.out,
+                     resume=args.resume, overwrite=args.overwrite, quiet=args.quiet,
+                     dtype="float64" if args.float64 else "float32")
+    print(f"gains written to {args.out} ({res.status})")
+    return _fit_status(res)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# filter
+# ------------------------------------------------------------------------------------------------------------
+def _import_attr(spec: str, flag: str):
+    import importlib
+    import os
+
+    if ":" not in spec:
+        raise UserError(f"{flag} {spec!r}: expected a registered name or module:attr")
+    mod_name, attr = spec.split(":", 1)
+    sys.path.insert(0, os.getcwd())
+    try:
+        mod = importlib.import_module(mod_name)
+    except ImportError as e:
+        raise UserError(f"{flag} {spec}: cannot import {mod_name} ({e})") from None
+    finally:
+        sys.path.pop(0)
+    if not hasattr(mod, attr):
+        raise UserError(f"{flag} {spec}: {mod_name} has no attribute {attr!r}")
+    return getattr(mod, attr)
+
+
+def _load_any_log(path: str):
+    from pathlib import Path
+
+    from .data import broad, logs
+
+    if Path(path).suffix.lower() in (".hdf5", ".h5"):
+        tr = broad.load_trial(path)
+        return tr.samples, tr.rate_hz
+    return logs.load_log(path), None
+
+
+def _filter(args) -> int:
+    from . import api, io
+    from .observers import registry
+
+    out = io.check_output_path(args.out, "--out")
+    if ":" in args.observer:
+        observer = _import_attr(args.observer, "--observer")
+        params = _import_attr(args.params, "--params") if args.params else None
+        if args.gains and isinstance(observer, registry.Entry):
+            params = args.gains
+        elif args.gains:
+            raise UserError("--gains applies to registered observers (or registry Entry objects); use --params")
+    else:
+        if args.params:
+            raise UserError("--params applies to your own observer (module:attr); use --gains for a registered one")
+        observer, params = args.observer, args.gains
+    samples, rate = _load_any_log(args.log)
+    dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
+    est = api.filter(observer, samples.gyr, samples.acc, samples.mag, dt=dt,
+                     t=None if dt is not None else samples.t, params=params, frame=args.frame,
+                     dtype="float32" if args.float32 else None)
+    cols, names = [est.t, est.quat[:, 0], est.quat[:, 1], est.quat[:, 2], est.quat[:, 3]], ["t", "qw", "qx", "qy", "qz"]
+    for k, v in est.outputs.items():
+        if k in ("t", "q", "r"):
+            continue
+        v = np.asarray(v)
+        if v.ndim == 1:
+            cols.append(v.astype(float))
+            names.append(k)
+        elif v.ndim == 2 and v.shape[1] == 3:
+            for i, ax in enumerate("xyz"):
+                cols.append(v[:, i].astype(float))
+                names.append(f"{k}_{ax}")
+    table = np.column_stack(cols)
+    import os
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp", dir=str(out.parent))
+    with os.fdopen(fd, "w") as f:
+        f.write(",".join(names) + "\n")
+        np.savetxt(f, table, delimiter=",", fmt="%.17g")
+    os.replace(tmp, out)
+    print(f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
+          f"with columns {', '.join(names)}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------------
+# excitation
+# ------------------------------------------------------------------------------------------------------------
 def _excitation(args) -> int:
-    import jax
+    from . import analysis, frames, io
 
-    jax.config.update("jax_enable_x64", True)
-    from . import analysis
-
+    io.check_output_path(args.json, "--json")
+    io.check_output_path(args.plot, "--plot")
     if args.scenario:
         from .sim import references
 
@@ -327,12 +543,11 @@ def _excitation(args) -> int:
 
         samples = logs.load_log(args.log)
         if samples.acc is None and samples.mag is None:
-            raise ValueError("the log has neither acc nor mag columns")
+            raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
         if "mag" in fields and args.mag_ref is None:
-            raise ValueError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")
-        up = comp.UP_NED if args.frame == "NED" else comp.UP_ENU
-        refs_ = [np.asarray(up, float)] if "acc" in fields else []
+            raise UserError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")
+        refs_ = [frames.up(args.frame)] if "acc" in fields else []
         if "mag" in fields:
             refs_.append(np.asarray(args.mag_ref, float))
         p = comp.default_params(len(refs_), 0, ref_inertial=np.stack(refs_))
@@ -355,136 +570,46 @@ def _excitation(args) -> int:
     else:
         print(f"exciting in every window (lambda2/T >= {args.threshold:g})")
     if args.json:
-        _write_json(args.json, {"source": source, "window_s": T, "threshold": args.threshold,
-                                "measures": {k: np.asarray(v).tolist() for k, v in res._asdict().items()},
-                                "environment": _environment()})
+        io.write_json(args.json, {"source": source, "window_s": T, "threshold": args.threshold,
+                                  "measures": {k: np.asarray(v).tolist() for k, v in res._asdict().items()},
+                                  "environment": io.environment()})
         print(f"results written to {args.json}")
     if args.plot:
-        import matplotlib
+        from . import plot
 
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-
+        plt = plot._plt()
         fig, ax = plt.subplots(figsize=(7, 3.2), constrained_layout=True)
         analysis.plot_excitation(res, ax=ax, threshold=args.threshold, title=f"excitation: {source}")
-        fig.savefig(args.plot, dpi=110)
-        plt.close(fig)
+        plot.save(fig, args.plot, close=True)
         print(f"plot written to {args.plot}")
     return 0
 
 
-def _reproduce_nlio(args, name: str) -> int:
-    """Section 5 of sensors2020 (NLO, NLIO-FG, NLIO-TV, MEKF): tables laid out like the paper's Tables 1-7."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-
-    from .experiments import nlio
-
-    if args.aggressive or args.x1_init or args.m_init or args.integrator:
-        print("jaxatt: error: --aggressive/--x1-init/--m-init/--integrator do not apply to the NLIO cases",
-              file=sys.stderr)
-        return 2
-    kw = {}
-    if args.duration is not None:
-        kw["duration"] = args.duration
-    try:
-        nlio.reproduce(name, runs=args.runs, seed=args.seed, chunk=args.chunk, json_path=args.json,
-                       plot_path=args.plot, quiet=args.quiet, dtype=jnp.float32 if args.float32 else None, **kw)
-    except KeyboardInterrupt:
-        print("jaxatt: interrupted (finished observers are in the JSON)", file=sys.stderr)
-        return 130
-    except ValueError as e:
-        print(f"jaxatt: error: {e}", file=sys.stderr)
-        return 2
-    return 0
-
-
-def _tools(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    if args.command == "tune":
-        from . import tune
-
-        tune.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=args.out, seed=args.seed,
-                  lr=args.lr, duration=args.duration, refine_schedule=args.refine_schedule, quiet=args.quiet)
-        print(f"gains written to {args.out}")
-        return 0
-    if args.command == "evaluate":
-        from . import tune
-
-        tune.evaluate(args.experiment, args.gains, runs=args.runs, seed=args.seed, json_path=args.json,
-                      duration=args.duration, quiet=args.quiet)
-        return 0
-    from . import broad_tune
-
-    if args.command == "broad":
-        broad_tune.broad_eval(args.data_dir, args.observer, gains_path=args.gains, json_path=args.json,
-                              trials=args.trials, dtype="float32" if args.float32 else "float64")
-        return 0
-    broad_tune.broad_tune(args.data_dir, args.observer, trials=args.trials, out_path=args.out, steps=args.steps,
-                          lr=args.lr, init_gains=args.init_gains)
-    print(f"gains written to {args.out}")
-    return 0
+# ------------------------------------------------------------------------------------------------------------
+_COMMANDS = {"filter": _filter, "reproduce": _reproduce, "simulate": _simulate, "tune": _tune, "evaluate": _evaluate,
+             "broad": _broad, "broad-tune": _broad_tune, "excitation": _excitation}
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    if args.command in ("tune", "evaluate", "broad", "broad-tune"):
-        try:
-            return _tools(args)
-        except ValueError as e:
-            print(f"jaxatt: error: {e}", file=sys.stderr)
-            return 2
-        except KeyboardInterrupt:
-            print("jaxatt: interrupted (what was found so far is saved)", file=sys.stderr)
-            return 130
-    if args.command == "excitation":
-        try:
-            return _excitation(args)
-        except ValueError as e:
-            print(f"jaxatt: error: {e}", file=sys.stderr)
-            return 2
-    name = args.experiment if args.command == "reproduce" else args.observer
-    if name in NLIO_CASES:
-        return _reproduce_nlio(args, name)
-    E = _experiment(name)
-    dur = args.duration if args.duration is not None else E.DURATION
-    try:
-        obs_kw = _observer_settings(args, E, name)
-        if args.command == "reproduce":
-            traj = "aggressive" if args.aggressive else "slow"
-            cfg = E.Config(trajectory=traj, hold=args.hold, duration=dur,
-                           window_start=min(E.WINDOW_START, 2.0 * dur / 3.0), **obs_kw)
-            return _run(args, E, cfg, E.PAPER[traj], f"{name} reproduce ({traj})")
-        # simulate
-        if name == "complementary":
-            return _run(args, E, _complementary_config(args, E, dur), {}, f"{name} simulate ({args.scenario})")
-        r0 = args.r0
-        if args.r0_euler is not None:
-            from . import so3
+    import jax
 
-            r0 = tuple(np.asarray(so3.euler_zyx_to_matrix(*np.deg2rad(args.r0_euler))).reshape(9))
-        kw = dict(trajectory=args.trajectory, rate_scale=args.rate_scale, gyro_arw_deg_h_rthz=args.gyro_arw,
-                  mag_noise_nT=args.mag_noise, noise_scale=args.noise_scale, gyro_bias=args.gyro_bias,
-                  r_hat_0=r0, hold=args.hold, duration=dur, dt=args.dt,
-                  window_start=args.window_start if args.window_start is not None else min(E.WINDOW_START, 2.0 * dur / 3.0),
-                  **obs_kw)
-        if args.latitude is not None:
-            if not -90.0 <= args.latitude <= 90.0:
-                raise ValueError(f"--latitude must be in [-90, 90] degrees, got {args.latitude}")
-            kw["latitude_deg"] = args.latitude
-        if args.reference is not None:
-            kw["reference_nT"] = args.reference
-        return _run(args, E, E.Config(**kw), {}, f"{name} simulate")
-    except ValueError as e:
+    jax.config.update("jax_enable_x64", True)  # the entry point decides the precision (the library never does)
+    try:
+        return _COMMANDS[args.command](args)
+    except KeyboardInterrupt:
+        print("jaxatt: interrupted (finished work is saved)", file=sys.stderr)
+        return 130
+    except (UserError, ValueError, FileNotFoundError, ImportError) as e:
+        if args.debug:
+            raise
         print(f"jaxatt: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("jaxatt: interrupted", file=sys.stderr)
-        return 130
+    except FloatingPointError as e:
+        if args.debug:
+            raise
+        print(f"jaxatt: error: non-finite result: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

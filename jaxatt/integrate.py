@@ -14,21 +14,15 @@ A step receives a :class:`Interval` (start and end samples) in the linear mode a
 """
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 
 from . import so3
+from .types import Interval
 
-__all__ = ["Interval", "input_at", "rk4_step", "rkmk4_step", "lie_rk4_step", "magnus4_step"]
-
-
-class Interval(NamedTuple):
-    """Samples at both ends of a step, for linear interpolation of the input over the step."""
-
-    start: Any
-    end: Any
+__all__ = ["input_at", "rk4_step", "rkmk4_step", "lie_rk4_step", "magnus4_step"]
 
 
 def input_at(u: Any, frac: float) -> Any:

@@ -17,7 +17,7 @@ from . import so3
 
 __all__ = ["RunningStats", "stats_init", "stats_update", "stats_std", "WindowMetrics", "window_init",
            "window_update", "window_summary", "angle_error_deg", "WindowMoments", "moments_init", "moments_update",
-           "moments_summary", "check_windows", "wrap_angle"]
+           "moments_summary", "check_windows"]
 
 
 class RunningStats(NamedTuple):
@@ -101,11 +101,6 @@ def window_summary(acc: WindowMetrics) -> Dict[str, jax.Array]:
 # ------------------------------------------------------------------------------------------------------
 # MAE / RMSE of named errors over named time windows
 # ------------------------------------------------------------------------------------------------------
-def wrap_angle(a):
-    """Angle (rad) wrapped to (-pi, pi] (smooth: atan2(sin a, cos a))."""
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
-
-
 def check_windows(windows) -> tuple:
     """Validate and normalise ``windows`` = ((name, start_s, end_s), ...) into a hashable tuple."""
     out = []

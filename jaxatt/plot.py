@@ -3,7 +3,7 @@ tuning curves and paper-number comparisons.
 
 Everything here works on plain numpy data: the *traces* recorded by :func:`jaxatt.montecarlo.simulate` /
 :func:`jaxatt.montecarlo.monte_carlo` (dicts of arrays, ``t`` in s, ``(n,)`` for one run or ``(runs, n)`` for
-a Monte Carlo), the history of :func:`jaxatt.tune.optimize`, or metric dicts. matplotlib is imported only when a
+a Monte Carlo), the history of :func:`jaxatt.fit`, or metric dicts. matplotlib is imported only when a
 figure is drawn (``import jaxatt`` does not need it). Functions that draw into existing axes take ``ax=`` and
 return it; functions that build a whole figure return the ``Figure`` (save it with :func:`save`).
 
@@ -206,10 +206,7 @@ def _euler_error_rad(r_true, r_est):
 
     from . import so3
 
-    et = so3.matrix_to_euler_zyx(r_true)
-    ee = so3.matrix_to_euler_zyx(r_est)
-    d = jnp.stack([e - t for e, t in zip(ee, et)], axis=-1)
-    return jnp.arctan2(jnp.sin(d), jnp.cos(d))
+    return jnp.stack(so3.euler_error_zyx(r_true, r_est), axis=-1)
 
 
 def euler_error_deg(r_true, r_est) -> np.ndarray:
@@ -281,7 +278,7 @@ def euler_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
 # ------------------------------------------------------------------------------------------------------
 def _history_columns(history) -> Dict[str, np.ndarray]:
     """{step, train_<m>, val_<m>, ...} as float arrays (NaN where a step has no value) from a list of per-step
-    dicts (:class:`jaxatt.tune.OptimizeResult.history`) or a dict of equal-length lists."""
+    dicts (:attr:`jaxatt.fit.fitter.FitResult.history`) or a dict of equal-length lists."""
     if isinstance(history, Mapping):
         cols = {k: np.asarray(v, float) for k, v in history.items()}
         if "step" not in cols:
@@ -296,7 +293,7 @@ def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, 
                   ylabel: Optional[str] = None):
     """Training and held-out (validation) curves against the optimizer step; returns the Axes.
 
-    ``history``: :attr:`jaxatt.tune.OptimizeResult.history` (a list of dicts with ``step``, ``train_loss``,
+    ``history``: :attr:`jaxatt.fit.fitter.FitResult.history` (a list of dicts with ``step``, ``train_loss``,
     ``val_loss``, ``train_angle_deg``, ``val_angle_deg``) or a dict of lists with the same keys. ``metric``
     picks ``train_<metric>`` / ``val_<metric>`` ("loss" or "angle_deg"). The best held-out step is marked.
     """

@@ -9,7 +9,7 @@ through ``jax.debug.callback`` - never a Python loop over time steps. What is sh
   "steps_per_run", "run_steps_done", "run_steps_total", "elapsed_s"} (e.g. a tqdm bar or a notebook widget);
 * ``progress=None`` / ``False`` (default): nothing is compiled in and nothing is called.
 
-:func:`jaxatt.montecarlo.monte_carlo` reports per block and per chunk; :func:`jaxatt.tune.tune` reports per
+:func:`jaxatt.montecarlo.monte_carlo` reports per block and per chunk; :func:`jaxatt.fit` reports per
 optimizer step (its ``callback``).
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-__all__ = ["TextProgress", "make_reporter", "block_hook", "active"]
+__all__ = ["TextProgress", "make_reporter", "steps_hook", "active"]
 
 #: The reporting call in progress (module level: XLA runs host callbacks on its own threads).
 _CURRENT: list = [None]
@@ -95,12 +95,13 @@ class active:
         return False
 
 
-def block_hook(block_index) -> None:
-    """Host side of the in-scan report (``jax.debug.callback``): block ``block_index`` of the chunk is done."""
+def steps_hook(steps_done) -> None:
+    """Host side of the in-scan report (``jax.debug.callback`` of :mod:`jaxatt.engine`): the first
+    ``steps_done`` steps of every run of the chunk are done."""
     run = _CURRENT[0]
     if run is None:
         return
-    steps = min((int(np.max(np.asarray(block_index))) + 1) * run.block_steps, run.steps_per_run)
+    steps = min(int(np.max(np.asarray(steps_done))), run.steps_per_run)
     if steps > run.chunk_steps:  # every device reports each block: keep the first report of each
         run.chunk_steps = steps
         run.report(steps)

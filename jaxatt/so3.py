@@ -23,7 +23,7 @@ __all__ = [
     "skew", "vex", "mm", "mv", "exp", "log", "quat_to_matrix", "matrix_to_quat", "quat_multiply",
     "quat_conjugate", "quat_canonical", "nearest_rotation", "polar_newton", "orthogonality_error",
     "angle_error", "angle_of", "EulerZYX", "matrix_to_euler_zyx", "euler_zyx_to_matrix", "cross",
-    "to_xyzw", "from_xyzw", "det3", "cofactor",
+    "det3", "cofactor", "wrap_angle", "euler_error_zyx", "triad", "unit",
 ]
 
 
@@ -179,16 +179,6 @@ def quat_canonical(q: jax.Array) -> jax.Array:
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
-def to_xyzw(q: jax.Array) -> jax.Array:
-    """(w, x, y, z) -> (x, y, z, w), the order of scipy.spatial.transform."""
-    return jnp.concatenate([q[..., 1:], q[..., :1]], axis=-1)
-
-
-def from_xyzw(q: jax.Array) -> jax.Array:
-    """(x, y, z, w) -> (w, x, y, z)."""
-    return jnp.concatenate([q[..., 3:], q[..., :3]], axis=-1)
-
-
 # --------------------------------------------------------------------------------------------------------
 # Projection onto SO(3)
 # --------------------------------------------------------------------------------------------------------
@@ -300,3 +290,41 @@ def euler_zyx_to_matrix(roll: jax.Array, pitch: jax.Array, yaw: jax.Array) -> ja
         ],
         axis=-2,
     )
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+    """Angle (rad) wrapped to (-pi, pi] (smooth: atan2(sin a, cos a))."""
+    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+def euler_error_zyx(r_true: jax.Array, r_est: jax.Array) -> EulerZYX:
+    """Roll, pitch, yaw errors (rad): ZYX angles of the estimate minus the truth's, wrapped to (-pi, pi]."""
+    et, ee = matrix_to_euler_zyx(r_true), matrix_to_euler_zyx(r_est)
+    return EulerZYX(*(wrap_angle(a - b) for a, b in zip(ee, et)))
+
+
+# --------------------------------------------------------------------------------------------------------
+# Attitude from two vectors
+# --------------------------------------------------------------------------------------------------------
+def unit(v: jax.Array) -> jax.Array:
+    """v / |v| over the last axis, gradient-safe: vectors of norm 0 are returned unchanged."""
+    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    return v / jnp.sqrt(jnp.where(n2 > 0, n2, 1.0))
+
+
+def triad(acc: jax.Array, mag: jax.Array, frame: str = "ENU") -> jax.Array:
+    """Sensor-to-``frame`` rotation (..., 3, 3) from one accelerometer and one magnetometer sample (TRIAD).
+
+    up = a / |a| (the specific force at rest points up), east = m x up / |m x up|, north = up x east: the rows of
+    the sensor-to-ENU matrix are (east, north, up) in sensor coordinates; other frames (``"NED"``, ``"NWU"``,
+    :mod:`jaxatt.frames`) by a fixed rotation. "North" is magnetic north (the field's horizontal direction).
+    """
+    from .frames import frame_rotation
+
+    u = unit(acc)
+    east = unit(cross(mag, u))
+    north = cross(u, east)
+    r_enu = jnp.stack([east, north, u], axis=-2)
+    if frame == "ENU":
+        return r_enu
+    return mm(jnp.asarray(frame_rotation(frame, "ENU"), r_enu.dtype), r_enu)

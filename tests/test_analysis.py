@@ -9,7 +9,7 @@ import pytest  # noqa: E402
 
 from jaxatt import analysis as A  # noqa: E402
 from jaxatt.observers import complementary as C  # noqa: E402
-from jaxatt.observers.base import ImuSample  # noqa: E402
+from jaxatt.types import ImuSample  # noqa: E402
 from jaxatt.sim import references as S  # noqa: E402
 
 

@@ -18,7 +18,7 @@ import pytest
 from jaxatt import montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.observers import mahony
-from jaxatt.observers.base import ImuSample
+from jaxatt.types import ImuSample
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data" / "broad"
 PUBLISHED = DATA / "published" / "results_mahony_average_rmse.json"

@@ -49,7 +49,7 @@ def test_excitation_command_flags_unobservable_scenario(tmp_path, capsys):
 
 def test_excitation_of_a_log_file(tmp_path, capsys):
     from jaxatt.data import logs
-    from jaxatt.observers.base import ImuSample
+    from jaxatt.types import ImuSample
 
     t = np.arange(0, 20, 0.01)
     # a level sensor spinning about the vertical: gravity alone leaves the heading unobservable; with the field

@@ -11,7 +11,7 @@ import pytest  # noqa: E402
 
 from jaxatt import analysis, montecarlo, so3  # noqa: E402
 from jaxatt.observers import complementary as C  # noqa: E402
-from jaxatt.observers.base import ImuSample  # noqa: E402
+from jaxatt.types import ImuSample  # noqa: E402
 from jaxatt.sim import references as S  # noqa: E402
 
 DT = 0.02
@@ -53,7 +53,8 @@ def initial_estimates(r_true0, angles_deg, seed=0):
 
 
 def angle_deg(out, truth_r):
-    return np.rad2deg(angle_between(truth_r[1:], out.r))
+    """Angle error (deg) of every estimate (T of them, estimate 0 being init's) against the truth at its time."""
+    return np.rad2deg(angle_between(truth_r, out.r))
 
 
 def run(params, samples, form="matrix", dt=DT, hold="zoh", **kw):
@@ -141,7 +142,8 @@ def test_lyapunov_never_increases(rotating, mixed):
         for r0 in initial_estimates(truth_r[0], [20.0, 75.0, 130.0, 175.0], seed=1):
             p = C.default_params(1, n2, k=0.6, l=0.9, r_hat_0=r0, bias_0=bias)
             out = run(p, samples, dt=dt, hold="linear")
-            v = np.concatenate([[lyap(r0, truth_r[0])], lyap(out.r, truth_r[1:])])
+            v = lyap(out.r, truth_r)
+            np.testing.assert_allclose(v[0], lyap(r0, truth_r[0]), atol=1e-12)  # estimate 0: R^(0)
             assert v[0] < 4.0
             assert np.max(np.diff(v)) < 1e-9, np.max(np.diff(v))
             assert v[-1] < v[0]
@@ -253,12 +255,18 @@ def test_missing_measurements_are_skipped_and_gyro_held(rotating):
     r0 = initial_estimates(truth_r[0], [60.0], seed=10)[0]
     out = run(C.default_params(1, 0, k=0.6, r_hat_0=r0), bad)
     assert np.all(np.isfinite(np.asarray(out.r)))
+    # estimate 0 is init's: no correction, nothing used, no gyro held
+    assert not bool(out.used_body_meas[0, 0]) and not bool(out.gyr_held[0])
+    np.testing.assert_array_equal(out.correction[0], 0.0)
+    np.testing.assert_allclose(out.r[0], r0, atol=1e-12)
+    # row k of the step outputs below (estimate k + 1) is the step over [t_k, t_{k+1}], which holds sample k
+    ang = angle_deg(out, truth_r)[1:]
+    out = jax.tree_util.tree_map(lambda a: a[1:], out)
     used = np.asarray(out.used_body_meas[:, 0])
     assert not used[100:400].any() and not used[500] and used[400:500].all()
     assert bool(out.gyr_held[700]) and int(np.sum(out.gyr_held)) == 1
     np.testing.assert_allclose(out.correction[100:400], 0.0)
     # while blind the estimate is pure gyro integration: the error stays (but for the zero-order-hold drift)
-    ang = angle_deg(out, truth_r)
     assert ang[100] > 20.0 and abs(ang[399] - ang[100]) < 0.2
     assert ang[-1] < 0.2
 

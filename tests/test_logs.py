@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from jaxatt.data import logs
-from jaxatt.observers.base import ImuSample
+from jaxatt.types import ImuSample
 
 
 def make_log(n=50, seed=0, with_acc=True, with_mag=True):

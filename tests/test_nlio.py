@@ -106,7 +106,7 @@ def test_rotation_of_equals_the_svd_projection():
 @functools.lru_cache(maxsize=None)
 def _vmapped_runner(variant, hold="linear"):
     """jit(vmap(run)) over a batch of params, cached so that tests with the same shapes share one compile."""
-    return jax.jit(jax.vmap(montecarlo._run_jit(nlio.make_observer(variant), hold), in_axes=(0, None, None)))
+    return jax.jit(jax.vmap(montecarlo.log_runner(nlio.make_observer(variant), hold), in_axes=(0, None, None)))
 
 
 def _base_params():
@@ -146,9 +146,10 @@ def test_noise_free_global_convergence_and_bias_bound(variant, noise_free_log, n
     samples, truth = noise_free_log
     base = _base_params()
     out = noise_free_runs(variant)
-    r_true = np.asarray(truth.r)[1:]
+    r_true = np.asarray(truth.r)
     ang = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true)[None], out.r)))  # (runs, T)
-    assert np.min(ang[:2, 0]) > 150.0 and np.max(ang[:, 0]) > 170.0  # large initial errors
+    assert np.min(ang[:2, 0]) > 150.0 and np.max(ang[:, 0]) > 170.0  # large initial errors (estimate 0: init's)
+    assert np.min(ang[:2, 1]) > 150.0 and np.max(ang[:, 1]) > 170.0  # ... still there after the first step
     bias_err = np.linalg.norm(np.asarray(out.bias)[:, -1] - BIAS, axis=-1)
     lifted_err = np.linalg.norm(np.asarray(out.r_hat)[:, -1] - r_true[-1], axis=(-2, -1))
     # Every run ends on the same trajectory (exponential forgetting of the initial condition); what is left is
@@ -190,7 +191,7 @@ def test_missing_samples_do_not_poison_the_run(variant, noise_free_log, noise_fr
     assert np.all(ang < 1e-3), ang
     # Before the first dropout the run is bit-identical to the one without dropouts.
     ref = noise_free_runs(variant)
-    assert np.max(np.abs(np.asarray(out.r)[:, :999] - np.asarray(ref.r)[:, :999])) == 0.0
+    assert np.max(np.abs(np.asarray(out.r)[:, :1000] - np.asarray(ref.r)[:, :1000])) == 0.0
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -264,10 +265,14 @@ def test_riccati_gains_match_numpy_and_the_dare(noise_free_log, noise_free_runs)
     sig_a, sig_m = 5e-3 * 9.81, 8e-3
     out = jax.tree_util.tree_map(lambda a: a[0], noise_free_runs("nlio-tv"))
     gyr = np.asarray(samples.gyr)
-    b_prev = np.concatenate([np.zeros((1, 3)), np.asarray(out.bias)[:-1]])
+    # estimate k holds the b^ and v^ the step over [t_k, t_{k+1}] starts from; estimate 0 is init's
+    np.testing.assert_array_equal(np.asarray(out.bias)[0], np.zeros(3))
+    b_prev = np.asarray(out.bias)[:-1]
     for which, v_out, k_out, r, p0, ref in (("acc", out.v1, out.k1, sig_a**2, 1e-5, ACC_REF),
                                             ("mag", out.v2, out.k2, sig_m**2, 5e-7, MAG_REF)):
-        v_prev = np.concatenate([np.asarray(getattr(samples, which))[:1], np.asarray(v_out)[:-1]])
+        np.testing.assert_array_equal(np.asarray(v_out)[0], np.asarray(getattr(samples, which))[0])
+        np.testing.assert_array_equal(np.asarray(k_out)[0], np.zeros((3, 3)))  # no Kalman update yet
+        v_prev = np.asarray(v_out)[:-1]
         pk = p0 * np.eye(3)
         k_np = []
         for k in range(len(gyr) - 1):
@@ -282,9 +287,9 @@ def test_riccati_gains_match_numpy_and_the_dare(noise_free_log, noise_free_runs)
             pk = f @ post @ f.T + 0.5 * DT * (f @ q @ f.T + q)  # eq. (28)
             k_np.append(gain / DT)
         k_np = np.array(k_np)
-        np.testing.assert_allclose(np.asarray(k_out), k_np, rtol=1e-9, atol=1e-9 * np.max(np.abs(k_np)))
+        np.testing.assert_allclose(np.asarray(k_out)[1:], k_np, rtol=1e-9, atol=1e-9 * np.max(np.abs(k_np)))
         # Steady state, navigation frame: K_N = R K R^T -> DARE gain on the plane orthogonal to v^N.
-        r_true = np.asarray(truth.r)[1:]
+        r_true = np.asarray(truth.r)
         k_nav = np.einsum("tij,tjk,tlk->til", r_true[-500:], np.asarray(k_out)[-500:] * DT, r_true[-500:])
         u = ref / np.linalg.norm(ref)
         basis = scipy.linalg.null_space(u[None])  # (3, 2): the plane orthogonal to v^N
@@ -361,6 +366,9 @@ def test_window_metrics_and_random_initial_estimates():
     obs, p = E.observer(cfg, "NLO"), E.params(cfg, "NLO")
     mc = montecarlo.monte_carlo(E.scenario(cfg), obs, p, runs=3, chunk=1, **kw)
     summ, trace, _ = montecarlo.simulate(E.scenario(cfg), obs, p, run_index=1, **kw)  # same compiled runner
+    # the trace starts at estimate 0 (t = 0, init's); the window metrics count the step estimates 1 ... T-1
+    assert trace["t"][0] == 0.0 and len(trace["t"]) == round(cfg.duration / DT) + 1
+    trace = {k: v[1:] for k, v in trace.items()}
     t = trace["t"]
     for name, lo, hi in cfg.windows:
         sel = (t >= lo - 1e-9) & (t <= hi + 1e-9)
@@ -379,7 +387,8 @@ def test_window_metrics_and_random_initial_estimates():
     first = jax.tree_util.tree_map(lambda a: a[0], log)
     p0 = p._replace(r_hat_0=r0)
     _, o = jax.jit(obs.step)(p0, obs.init(p0, first), Interval(first, jax.tree_util.tree_map(lambda a: a[1], log)), DT)
-    np.testing.assert_allclose(mc.traces["r"][k, 0], o.r, atol=1e-12)
+    np.testing.assert_allclose(mc.traces["r"][k, 0], r0, atol=1e-12)  # estimate 0: the drawn initial estimate
+    np.testing.assert_allclose(mc.traces["r"][k, 1], o.r, atol=1e-12)
     assert np.max(np.abs(mc.traces["r"][0, 0] - mc.traces["r"][1, 0])) > 0.2  # runs start differently
 
 

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 from jaxatt import montecarlo  # noqa: E402
 from jaxatt.experiments import batista_ges as exp  # noqa: E402
 from jaxatt.observers import batista_ges as ges  # noqa: E402
-from jaxatt.observers.base import ImuSample  # noqa: E402
+from jaxatt.types import ImuSample  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 import numpy_reference as npref  # noqa: E402
@@ -39,6 +39,22 @@ def _true_x2_0(cfg):
     return np.cross(np.asarray(cfg.reference_nT, float), np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)))
 
 
+def _np_estimate0(p, t0, gyr0, mag0, x1_init="first_sample"):
+    """Estimate 0 (the fields of ``batista_ges.Out``) from the numpy reference's ``init`` state: R_f = the
+    projection of R^(0), omega_E^ by eq. (17) from x1^, x2^, projected when R^(0) is eps-close to SO(3)."""
+    s = npref.make_reference(p, x1_init).init(t0, gyr0, mag0)
+    k = npref.coefficients(p.ref_nav, p.earth_rate_nav)
+    r_hat = s.z2.reshape(3, 3)
+    close = bool(np.linalg.norm(r_hat.T @ r_hat - np.eye(3), "fro") <= float(p.epsilon) and np.linalg.det(r_hat) > 0)
+    return {"t": s.t, "x1": s.x1, "x2": s.x2, "earth_rate": k["we1"] * s.x1 + k["we2"] * np.cross(s.x1, s.x2),
+            "r_hat": r_hat, "r": s.r_f, "projected": close}
+
+
+def _with_estimate0(est0, steps):
+    """T estimates (jaxatt's alignment): estimate 0 followed by the reference's T - 1 step outputs."""
+    return {k: np.concatenate([np.asarray(est0[k])[None], np.asarray(v)]) for k, v in steps.items()}
+
+
 def _compare(jax_out, np_out):
     for f in FIELDS:
         a = np.asarray(getattr(jax_out, f), float)
@@ -60,8 +76,8 @@ def _run_both(cfg, p, t, gyr, mag, dt=DT, x1_init="first_sample"):
     samples = ImuSample(t=jnp.asarray(t), gyr=jnp.asarray(gyr), mag=jnp.asarray(mag))
     obs = ges.make_observer(x1_init=x1_init)
     out_j = montecarlo.run(obs, p, samples, dt=dt, validate=ges.check_params)
-    out_n = npref.run_numpy(ImuSample(t=t, gyr=gyr, mag=mag), p, dt=dt, x1_init=x1_init)
-    return out_j, out_n
+    out_n = npref.run_numpy(ImuSample(t=t, gyr=gyr, mag=mag), p, dt=dt, x1_init=x1_init)  # t_1 ... t_{T-1}
+    return out_j, _with_estimate0(_np_estimate0(p, t[0], gyr[0], mag[0], x1_init), out_n)
 
 
 def test_coefficients_match_paper_formulas():
@@ -152,6 +168,9 @@ def test_fused_simulation_matches_numpy_loop():
         1000, DT, p, rate=npref.batista_rates(), ref_nav=np.asarray(cfg.reference_nT, float),
         earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)), gyro_arw=0.0, mag_noise=0.0,
         record=True)
+    # the trace starts at estimate 0 (t = 0, R(0) = I, first sample noise-free: m(0) = I_m); rec holds the steps
+    est0 = _np_estimate0(p, 0.0, np.zeros(3), np.asarray(cfg.reference_nT, float))
+    rec = [(0.0, np.eye(3), est0)] + rec
     np.testing.assert_allclose(tr["t"], [r[0] for r in rec], rtol=1e-14)
     r_true = np.array([r[1] for r in rec])
     assert np.max(np.abs(tr["r_true"] - r_true)) < 1e-12

@@ -10,7 +10,7 @@ import pytest
 
 from jaxatt import so3
 from jaxatt.observers import robust_ahrs as ra
-from jaxatt.observers.base import ImuSample
+from jaxatt.types import ImuSample
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data" / "broad"
 DEG = np.pi / 180

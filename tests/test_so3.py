@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxatt import so3
+from jaxatt import frames, so3
 
 PI = np.pi
 
@@ -264,10 +264,10 @@ def test_quat_canonical_and_xyzw(rng):
     qc = np.asarray(J.quat_canonical(jnp.asarray(q)))
     assert np.all(qc[:, 0] >= 0)
     assert np.all((qc == q).all(axis=1) | (qc == -q).all(axis=1))
-    xyzw = np.asarray(J.to_xyzw(jnp.asarray(q)))
+    xyzw = np.asarray(frames.to_xyzw(jnp.asarray(q)))
     np.testing.assert_array_equal(xyzw, q[:, [1, 2, 3, 0]])
-    np.testing.assert_array_equal(np.asarray(J.from_xyzw(jnp.asarray(xyzw))), q)
-    np.testing.assert_array_equal(np.asarray(J.to_xyzw(J.from_xyzw(jnp.asarray(q)))), q)
+    np.testing.assert_array_equal(np.asarray(frames.from_xyzw(jnp.asarray(xyzw))), q)
+    np.testing.assert_array_equal(np.asarray(frames.to_xyzw(frames.from_xyzw(jnp.asarray(q)))), q)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -33,7 +33,6 @@ h5py is needed only to read the files: ``pip install "jaxatt[data]"``.
 """
 from __future__ import annotations
 
-import functools
 import json
 import re
 from pathlib import Path
@@ -43,17 +42,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..observers.base import ImuSample, Observer
+from .. import engine
+from ..types import ImuSample, Observer
 
-__all__ = ["Trial", "PaddedTrials", "load_trial", "list_trials", "load_trials", "load_trial_info", "trial_groups",
-           "group_trials", "error_angles", "broad_errors", "error_angles_jax", "broad_errors_jax", "pad_trials",
-           "run_on_trial", "run_on_padded", "batch_errors_jax", "evaluate", "ATTRIBUTION", "METRICS"]
+__all__ = ["Trial", "PaddedTrials", "load", "load_trial", "list_trials", "load_trials", "load_trial_info",
+           "trial_groups", "group_trials", "group_of", "resolve_trials", "stratified_folds", "error_angles",
+           "broad_errors", "error_angles_jax", "broad_errors_jax", "pad_trials", "batch_item", "score",
+           "METRIC_REDUCER", "ATTRIBUTION", "METRICS", "GROUPS", "ANCHORS"]
 
 ATTRIBUTION = ("BROAD dataset: D. Laidig, M. Caruso, A. Cereatti, T. Seel, 'BROAD - A Benchmark for Robust "
                "Inertial Orientation Estimation', Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0.")
 
 #: Names of the three BROAD metrics (RMSE in degrees over the movement samples).
 METRICS = ("total_rmse_deg", "heading_rmse_deg", "inclination_rmse_deg")
+#: The two groups of BROAD trials: 1-23 undisturbed, 24-39 disturbed (tapping, vibration, magnets).
+GROUPS = ("undisturbed", "disturbed")
+
+#: Mean total RMSE (deg, BROAD metric) of other libraries on the 20 shared trials (benchmarks/broad.py
+#: re-measures them).
+ANCHORS = {
+    "VQF online 9D": {"undisturbed": 1.90, "disturbed": 3.49},
+    "VQF offline 9D": {"undisturbed": 1.95, "disturbed": 2.28},
+    "ahrs Madgwick beta=0.12": {"undisturbed": 3.87, "disturbed": 7.14},
+    "ahrs Mahony (BROAD best)": {"undisturbed": 7.22, "disturbed": 11.40},
+    "imufusion defaults": {"undisturbed": 8.14, "disturbed": 20.45},
+}
 
 
 class Trial(NamedTuple):
@@ -66,6 +79,7 @@ class Trial(NamedTuple):
         quat_true: (N, 4) ground truth, sensor-to-ENU quaternion (w, x, y, z), NaN where missing.
         movement: (N,) bool, the samples that are scored.
         rate_hz: sampling rate (Hz).
+        group: "undisturbed" or "disturbed" (:data:`GROUPS`; from trials.json when present, else the number).
     """
 
     name: str
@@ -73,6 +87,7 @@ class Trial(NamedTuple):
     quat_true: np.ndarray
     movement: np.ndarray
     rate_hz: float
+    group: str = ""
 
 
 class PaddedTrials(NamedTuple):
@@ -113,21 +128,37 @@ def load_trial(path) -> Trial:
     """Load one BROAD HDF5 trial file (see :class:`Trial` for units and frames)."""
     path = Path(path)
     h5py = _h5py()
-    with h5py.File(path, "r") as f:
-        rate = float(np.asarray(f.attrs["sampling_rate"]).reshape(()))
-        gyr = np.asarray(f["imu_gyr"][()], dtype=np.float64)
-        acc = np.asarray(f["imu_acc"][()], dtype=np.float64)
-        mag = np.asarray(f["imu_mag"][()], dtype=np.float64)
-        quat = np.asarray(f["opt_quat"][()], dtype=np.float64)
-        movement = np.asarray(f["movement"][()]).reshape(-1).astype(bool)
+    if not path.is_file():
+        raise FileNotFoundError(f"BROAD trial file not found: {path}")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement") if k not in f]
+            if missing or "sampling_rate" not in f.attrs:
+                raise ValueError(f"{path.name}: not a BROAD trial (missing {missing or ['sampling_rate attribute']})")
+            rate = float(np.asarray(f.attrs["sampling_rate"]).reshape(()))
+            gyr = np.asarray(f["imu_gyr"][()], dtype=np.float64)
+            acc = np.asarray(f["imu_acc"][()], dtype=np.float64)
+            mag = np.asarray(f["imu_mag"][()], dtype=np.float64)
+            quat = np.asarray(f["opt_quat"][()], dtype=np.float64)
+            movement = np.asarray(f["movement"][()]).reshape(-1).astype(bool)
+    except OSError as e:
+        raise ValueError(f"{path.name}: cannot read the HDF5 file ({e})") from None
+    if gyr.ndim != 2 or gyr.shape[1:] != (3,):
+        raise ValueError(f"{path.name}: imu_gyr has shape {gyr.shape}, expected (N, 3)")
     n = gyr.shape[0]
     for k, v in (("imu_acc", acc), ("imu_mag", mag)):
         if v.shape != (n, 3):
             raise ValueError(f"{path.name}: {k} has shape {v.shape}, expected ({n}, 3)")
     if quat.shape != (n, 4) or movement.shape != (n,):
         raise ValueError(f"{path.name}: opt_quat {quat.shape} / movement {movement.shape} do not match N = {n}")
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"{path.name}: sampling_rate must be a positive number of Hz, got {rate}")
     t = np.arange(n, dtype=np.float64) / rate
-    return Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate)
+    try:
+        group = group_of(path.stem, load_trial_info(path.parent))
+    except ValueError:
+        group = ""
+    return Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate, group)
 
 
 def list_trials(data_dir) -> List[str]:
@@ -172,6 +203,64 @@ def trial_groups(name: str, info: Optional[dict] = None) -> List[str]:
 def group_trials(names: Sequence[str], group: str, info: Optional[dict] = None) -> List[str]:
     """The trials among ``names`` that belong to ``group`` (see :func:`trial_groups`)."""
     return [n for n in names if group in trial_groups(n, info)]
+
+
+def group_of(name: str, info: Optional[dict] = None) -> str:
+    """"disturbed" or "undisturbed" (see :func:`trial_groups`)."""
+    return "disturbed" if "disturbed" in trial_groups(name, info) else "undisturbed"
+
+
+def stratified_folds(names: Sequence[str], info=None, k: int = 2) -> List[List[str]]:
+    """k folds of trial names stratified by group: within each group (sorted by name) trial i goes to fold
+    i mod k. For the 20 shared trials and k = 2: fold 1 = 01 04 06 08 11 14 18 24 28 32, fold 2 = 02 05 07 10 12
+    15 21 26 30 34 (each fold has one tapping / vibration, one stationary-magnet and one attached-magnet trial)."""
+    folds: List[List[str]] = [[] for _ in range(k)]
+    for g in GROUPS:
+        members = sorted(n for n in names if group_of(n, info) == g)
+        for i, n in enumerate(members):
+            folds[i % k].append(n)
+    return [sorted(f) for f in folds]
+
+
+def resolve_trials(data_dir, trials=None) -> List[str]:
+    """Trial names from a spec: None (all), or a list / comma-separated string of trial names, leading numbers
+    ("01", "24"), group names ("undisturbed", "disturbed") or "fold1" / "fold2" (:func:`stratified_folds`).
+    ValueError naming what is not found."""
+    if not Path(data_dir).is_dir():
+        raise FileNotFoundError(f"BROAD data folder not found: {data_dir}")
+    names = list_trials(data_dir)
+    if not names:
+        raise FileNotFoundError(f"no BROAD trial files (*.hdf5) in {data_dir}")
+    if trials is None:
+        return names
+    if isinstance(trials, str):
+        trials = [t for t in trials.replace(",", " ").split() if t]
+    info = load_trial_info(data_dir)
+    out: List[str] = []
+    for t in trials:
+        t = str(t)
+        if t in names:
+            sel = [t]
+        elif t in GROUPS:
+            sel = [n for n in names if group_of(n, info) == t]
+        elif t.startswith("fold") and t[4:].isdigit():
+            folds = stratified_folds(names, info)
+            i = int(t[4:]) - 1
+            if not 0 <= i < len(folds):
+                raise ValueError(f"{t}: there are {len(folds)} folds")
+            sel = folds[i]
+        else:
+            sel = [n for n in names if n.split("_")[0] == t.zfill(2)]
+            if not sel:
+                raise ValueError(f"trial {t!r} not found in {data_dir}")
+        out.extend(x for x in sel if x not in out)
+    return out
+
+
+def load(data_dir, trials=None) -> List[Trial]:
+    """Load BROAD trials from a folder of ``.hdf5`` files: ``trials`` as in :func:`resolve_trials` (names, numbers
+    such as "01", groups, folds; None: all), in that order. Each :class:`Trial` knows its group."""
+    return load_trials(data_dir, resolve_trials(data_dir, trials))
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -284,7 +373,7 @@ def broad_errors_jax(quat_est, quat_true, movement, mask=None) -> Dict[str, jax.
 
 
 # ------------------------------------------------------------------------------------------------------------
-# Batching and running observers
+# Batching and scoring observers (through the one scan, :mod:`jaxatt.engine`)
 # ------------------------------------------------------------------------------------------------------------
 def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
     """Stack trials of different lengths into (B, T_max, ...) arrays for ``vmap``.
@@ -318,124 +407,71 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
                         tuple(tr.name for tr in trials), np.array([tr.rate_hz for tr in trials], float))
 
 
-def _scan_trial(observer: Observer, pick, params, first, params_run, samples: ImuSample, dt):
-    """init from sample 0, then step through every sample k = 0..N-1; returns stacked outputs, output k being
-    the estimate after processing sample k (BROAD's alignment).
-
-    ``init`` runs on ``params`` / ``first`` (the highest precision at hand) and its state is cast to the dtype of
-    ``samples``: BROAD computes its start quaternion in float64 and hands it to the float32 filter (setState).
-    ``pick(out)`` selects what is stacked (None: the whole Out).
-    """
-    state = observer.init(params, first)
-    dtype = samples.gyr.dtype
-    state = jax.tree_util.tree_map(
-        lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, state)
-
-    def body(st, u):
-        st, out = observer.step(params_run, st, u, dt)
-        return st, (out if pick is None else pick(out))
-
-    _, outs = jax.lax.scan(body, state, samples)
-    return outs
-
-
-def _pick_quat(out):
-    """Only the quaternions: the ENU one and, where the observer has one, its own-frame one (q_nwu)."""
-    return {"q": out.q, "q_nwu": getattr(out, "q_nwu", None)}
-
-
-def _to_enu_quat(outs):
-    """Sensor-to-ENU quaternions of the outputs in float64. Observers that keep their own earth frame (Mahony:
-    ``q_nwu``) are converted here in float64, as BROAD's example code does with its float32 filter output."""
-    def get(k):
-        return outs.get(k) if isinstance(outs, dict) else getattr(outs, k, None)
-
-    q_nwu = get("q_nwu")
-    if q_nwu is not None:
-        from ..observers.mahony import Q_ENU_FROM_NWU
-
-        q = np.asarray(q_nwu, np.float64)
-        return _quatmult_np(np.asarray(Q_ENU_FROM_NWU)[None], q)
-    return np.asarray(get("q"), np.float64)
-
-
-def _cast_float(tree, dtype):
-    return jax.tree_util.tree_map(
-        lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else jnp.asarray(a),
-        tree)
-
-
-@functools.lru_cache(maxsize=32)
-def _runner(observer: Observer, batched: bool, full: bool):
-    fn = functools.partial(_scan_trial, observer, None if full else _pick_quat)
-    if batched:
-        fn = jax.vmap(fn, in_axes=(None, 0, None, 0, 0))
-    return jax.jit(fn)
-
-
-def _run(observer, params, samples: ImuSample, rate_hz, dtype, batched, full=False):
-    hi = jnp.result_type(float)  # float64 when x64 is enabled
-    first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:, 0] if batched else np.asarray(a)[0], samples)
-    run = _runner(observer, batched, full)
-    return run(_cast_float(params, hi), _cast_float(first, hi), _cast_float(params, dtype), _cast_float(samples, dtype),
-               _dt(rate_hz, dtype))
-
-
-def _dt(rate_hz, dtype):
+def step_dt(rate_hz, dtype):
     """Step dt = 1 / rate computed in ``dtype`` (as the C filters do: 1.0f / sampleFreq in float32)."""
     one = np.asarray(1.0, dtype)
     return one / np.asarray(rate_hz, dtype)
 
 
-def run_on_trial(observer: Observer, params, trial: Trial, *, dtype=None, outputs: bool = False):
-    """Run ``observer`` over one trial with BROAD's alignment; returns quat_est (N, 4) float64, sensor-to-ENU.
+def batch_item(padded: PaddedTrials, dtype) -> dict:
+    """The engine's recorded batch of padded trials: samples (B, T, ...) as given (cast in the scan), a constant
+    dt per trial (1 / rate in ``dtype``) and the truth the BROAD reducer scores against: ``q`` (B, T, 4)
+    sensor-to-ENU with missing rows replaced by the identity and ``use`` (B, T) = movement & real sample &
+    finite truth (so no NaN enters a scan or a gradient)."""
+    qt = np.asarray(padded.quat_true, np.float64)
+    finite = np.all(np.isfinite(qt), axis=-1)
+    qt = np.where(finite[..., None], qt, np.array([1.0, 0.0, 0.0, 0.0]))
+    use = padded.movement & padded.mask & finite
+    hi = jnp.result_type(float)
+    return {"samples": jax.tree_util.tree_map(jnp.asarray, padded.samples),
+            "dt": jnp.asarray(step_dt(padded.rate_hz, dtype)),
+            "truth": {"q": jnp.asarray(qt, hi), "use": jnp.asarray(use)}}
 
-    ``init(params, sample_0)`` starts the filter, then ``step`` processes samples 0 .. N-1 with dt = 1/rate;
-    quat_est[k] is the estimate after processing sample k (jaxatt label t_k + dt), which BROAD compares with
-    ``opt_quat[k]``. ``dtype`` (default: jax's default float) is the arithmetic of the run (float32 emulates
-    BROAD's C filters; float64 is the exact filter). With ``outputs=True`` returns (quat_est, stacked Out).
+
+def _sq_errors(q_est, q_true):
+    """Squared total, heading and inclination errors (rad^2) of :func:`error_angles_jax`, gradient-safe."""
+    total, heading, incl = error_angles_jax(q_est, q_true)
+    return jnp.stack([total * total, heading * heading, incl * incl])
+
+
+def _metric_init(t0, truth0, out0):
+    acc = jnp.zeros((3,), truth0["q"].dtype), jnp.zeros((), truth0["q"].dtype)
+    return _metric_update(acc, t0, truth0, out0)[0], None
+
+
+def _metric_update(acc, t, truth, out):
+    sse, n = acc
+    q = engine.estimate_q(out).astype(truth["q"].dtype)
+    use = truth["use"]
+    qe = jnp.where(use, q, truth["q"])  # unused samples: zero error, no NaN reaches the gradient
+    return (sse + jnp.where(use, _sq_errors(qe, truth["q"]), 0.0), n + use.astype(sse.dtype)), None
+
+
+def _metric_finish(acc):
+    sse, n = acc
+    ms = sse / jnp.maximum(n, 1.0)
+    return dict(zip(METRICS, jnp.rad2deg(_safe_sqrt(ms))))
+
+
+#: The BROAD metric accumulated while the scan runs: per trial the RMSE (deg) of the total, heading and
+#: inclination errors over the scored samples (movement, real, finite truth), differentiable. Computed in the
+#: truth's precision (float64 when available) whatever the filter's.
+METRIC_REDUCER = engine.Reducer(_metric_init, _metric_update, _metric_finish)
+
+
+def score(observer: Observer, params, trials: Sequence[Trial], *, hold: str = "next", dtype=None) -> Dict[str, Dict[str, float]]:
+    """BROAD metric of ``observer`` on each trial: {trial name: {metric: RMSE deg}}, all trials in one vmapped scan.
+
+    The observer's estimate k (T estimates for T samples: estimate 0 is ``init``'s from the first sample,
+    :mod:`jaxatt.engine`) must be sensor-to-ENU (BROAD's frame) and is scored against ``opt_quat[k]``. ``hold``:
+    the input of each step ("next": sample k updates the estimate to t_k, as ahrs, VQF and BROAD's filters do).
+    ``dtype``: the filter's arithmetic (default jax's default float); the metric is computed in float64 when x64
+    is enabled.
     """
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    outs = _run(observer, params, trial.samples, trial.rate_hz, dtype, batched=False, full=outputs)
-    q = _to_enu_quat(outs)
-    return (q, outs) if outputs else q
-
-
-def run_on_padded(observer: Observer, params, padded: PaddedTrials, *, dtype=None):
-    """Run ``observer`` over a batch of padded trials (vmap, one jit); returns quat_est (B, T_max, 4) float64
-    (sensor-to-ENU), same alignment as :func:`run_on_trial`; rows past each trial's length are padding."""
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    outs = _run(observer, params, padded.samples, padded.rate_hz, dtype, batched=True)
-    return _to_enu_quat(outs)
-
-
-def batch_errors_jax(observer: Observer, params, padded: PaddedTrials, dtype=None) -> Dict[str, jax.Array]:
-    """Differentiable BROAD metric of ``observer`` on every padded trial: {metric: (B,) RMSE deg}.
-
-    Pure JAX in ``params`` (wrap it in ``jax.jit`` / ``jax.grad`` for gain learning); the padded data are
-    constants. Same alignment as :func:`run_on_trial`; uses ``Out.q`` (sensor-to-ENU) and
-    :func:`broad_errors_jax` with the padding masked out. Init runs in ``dtype`` here (no float64 start).
-    """
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    samples = _cast_float(padded.samples, dtype)
-    dts = jnp.asarray(_dt(padded.rate_hz, dtype))
-    qt = jnp.asarray(padded.quat_true, dtype)
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a).astype(dtype), params)
-
-    def one(s, q_true, movement, mask, dt):
-        first = jax.tree_util.tree_map(lambda a: a[0], s)
-        outs = _scan_trial(observer, lambda o: o.q, params, first, params, s, dt)
-        return broad_errors_jax(outs, q_true, movement, mask)
-
-    return jax.vmap(one)(samples, qt, jnp.asarray(padded.movement), jnp.asarray(padded.mask), dts)
-
-
-def evaluate(observer: Observer, params, trials: Sequence[Trial], *, dtype=None) -> Dict[str, Dict[str, float]]:
-    """BROAD metric of ``observer`` on each trial: {trial name: {metric: RMSE deg}} (one vmapped run)."""
     padded = pad_trials(trials)
-    q = run_on_padded(observer, params, padded, dtype=dtype)
-    res = {}
-    for i, tr in enumerate(trials):
-        n = padded.lengths[i]
-        res[tr.name] = broad_errors(q[i, :n], tr.quat_true, tr.movement)
-    return res
+    n_steps = int(padded.samples.t.shape[1]) - 1
+    fn = engine.compiled(observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype)
+    summary = jax.device_get(fn(None, params, batch_item(padded, dtype)).summary)
+    return {tr.name: {m: float(summary[m][i]) for m in METRICS} for i, tr in enumerate(trials)}
+

@@ -24,7 +24,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from ..observers.base import ImuSample
+from ..types import ImuSample
 
 __all__ = ["load_log", "save_log", "load_csv", "save_csv", "load_npz", "save_npz", "check_log", "CSV_COLUMNS"]
 

@@ -44,9 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import so3
-from ..integrate import Interval, rk4_step
-from .base import ImuSample, Observer
+from .. import schedule, so3
+from ..integrate import rk4_step
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "Coefficients", "make_observer", "default_params", "gain_from_q",
            "paper_gain", "coefficients", "check_params", "TABLE1_SWITCH_TIMES", "TABLE1_ALPHA1", "TABLE1_ALPHA2",
@@ -206,15 +207,13 @@ def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0
     steady-state (t >= 2400 s) mean angle error by 22.7 %. The memory stops growing at the last of
     ``refine_times``: for longer runs pass switch times that cover the horizon.
     """
-    from ..parametrize import refine_schedule  # the tuning module; imported here to keep this module light
-
     for name, v in (("k", k), ("early_scale", early_scale), ("late_alpha1_scale", late_alpha1_scale),
                     ("gain_z_scale", gain_z_scale)):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"growing_memory_params: {name} must be finite and positive, got {v}")
     if not (np.isfinite(grow_from) and grow_from > 0):
         raise ValueError(f"growing_memory_params: grow_from must be a positive time in s, got {grow_from}")
-    q = refine_schedule(p, refine_times, ["alpha1", "alpha2"])
+    q = schedule.refine(p, refine_times, ["alpha1", "alpha2"])
     starts = np.concatenate([[0.0], np.asarray(q.switch_times, float)])
     a1 = np.array(q.alpha1, float)
     a2 = np.array(q.alpha2, float)
@@ -279,8 +278,8 @@ def check_params(p: Params) -> None:
 # Dynamics
 # ------------------------------------------------------------------------------------------------------
 def _schedule(p: Params, t):
-    i = jnp.sum(jnp.asarray(t)[..., None] >= p.switch_times, axis=-1)
-    return p.alpha1[i], p.alpha2[i]
+    """alpha1, alpha2 of Table 1 at time t (s)."""
+    return schedule.value_at(p.switch_times, t, p.alpha1, p.alpha2)
 
 
 def earth_rate_estimate(coef: Coefficients, x1, x2):
@@ -362,10 +361,39 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         new = State(t1, x1, x2, r_hat, r_f, gyr_new, s.coef)
         return new, Out(t1, x1, x2, we1, r_hat, r_f, close)
 
-    return Observer(init=init, step=step, name="batista-ges")
+    def output(p: Params, s: State) -> Out:
+        close = (so3.orthogonality_error(s.r_hat) <= p.epsilon) & (so3.det3(s.r_hat) > 0)
+        return Out(s.t, s.x1, s.x2, earth_rate_estimate(s.coef, s.x1, s.x2), s.r_hat, s.r_f, close)
+
+    return Observer(init=init, step=step, name="batista-ges", output=output)
 
 
 def lyapunov_block1(p: Params, t, x1_err, x2_err):
     """V = z1^T P z1 with P = diag(I/2, I/(2 alpha2(t))) (Appendix B), z1 = [x1~; x2~]."""
     _, a2 = _schedule(p, t)
     return 0.5 * jnp.sum(x1_err**2, -1) + 0.5 / a2 * jnp.sum(x2_err**2, -1)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Registry
+# ------------------------------------------------------------------------------------------------------
+def _paper_params(dtype=None) -> Params:
+    """Section IV: IGRF-11 field at Lisbon (nT, NED), the Earth's rate there, Table 1 and the paper's Q."""
+    from ..sim import earth
+
+    return default_params(earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)),
+                          dtype=dtype)
+
+
+ENTRIES = (registry.Entry(
+    name="batista-ges",
+    summary="attitude + Earth rate from a high-grade gyro and ONE vector (GES, R^9 + projection)",
+    reference="Batista, Silvestre, Oliveira 2019 (GES), eqs. (15), (17), (21), Theorem 3",
+    make=make_observer, default_params=_paper_params,
+    gains=(registry.Gain("alpha1", "1/s", "gain of the Earth-rate block, eq. (15), one value per Table-1 interval "
+                         "(switch_times fixed)", "schedule"),
+           registry.Gain("alpha2", "1/s^2", "gain of the Earth-rate block, eq. (15), one value per Table-1 interval "
+                         "(switch_times fixed)", "schedule"),
+           registry.Gain("gain_z", "1/s", "z-space attitude gain G = C2^T Q^-1 C2 of eq. (21), 9x9 SPD acting on "
+                         "z2 = rows of R stacked", "spd")),
+    frame="NED", hold="zoh", needs=("mag",), module="batista_ges", check=check_params, recorded=False),)

@@ -52,9 +52,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import so3
-from ..integrate import Interval, rk4_step, rkmk4_step
-from .base import ImuSample, Observer
+from .. import schedule, so3
+from ..integrate import rk4_step, rkmk4_step
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "Coefficients", "make_observer", "default_params", "coefficients",
            "check_params", "check_references", "lyapunov", "linearization", "TABLE1_SWITCH_TIMES",
@@ -213,8 +214,8 @@ def check_params(p: Params) -> None:
 # Dynamics
 # ------------------------------------------------------------------------------------------------------
 def _schedule(p: Params, t):
-    i = jnp.sum(jnp.asarray(t)[..., None] >= p.switch_times, axis=-1)
-    return p.alpha1[i], p.alpha2[i]
+    """alpha1, alpha2 of Table 1 at time t (s)."""
+    return schedule.value_at(p.switch_times, t, p.alpha1, p.alpha2)
 
 
 def _rates(p: Params, coef: Coefficients, a1, a2, m_hat, v_hat, r, u: ImuSample):
@@ -304,7 +305,11 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         we = s.coef.c1 * m_now - s.coef.c2 * v_hat
         return State(t1, m_hat, v_hat, r, gyr_new, s.m_norm, s.coef), Out(t1, m_hat, v_hat, we, r)
 
-    return Observer(init=init, step=step, name="batista-so3")
+    def output(p: Params, s: State) -> Out:
+        """The estimate held by ``s`` (omega_E^ with m^ standing in for the measurement)."""
+        return Out(s.t, s.m_hat, s.v_hat, s.coef.c1 * s.m_hat - s.coef.c2 * s.v_hat, s.r)
+
+    return Observer(init=init, step=step, name="batista-so3", output=output)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -339,3 +344,41 @@ def linearization(ref_nav, earth_rate_nav, alpha0, alpha1, alpha2, alpha3, alpha
     a21 = np.hstack([np.zeros((3, 3)), c2 * eye - alpha4 * sv])
     a3 = alpha3 * sm @ sm + alpha4 * sv @ sv
     return np.block([[a1, np.zeros((6, 3))], [a21, a3]])
+
+
+# ------------------------------------------------------------------------------------------------------
+# Registry
+# ------------------------------------------------------------------------------------------------------
+def _paper_params(dtype=None) -> Params:
+    """Section 4: IGRF-11 field at Lisbon (nT, NED), the Earth's rate there, Table 1."""
+    from ..sim import earth
+
+    return default_params(earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)),
+                          dtype=dtype)
+
+
+def _norm2(v):
+    v = np.asarray(v, float)
+    return float(v @ v)
+
+
+def _iv_norm2(p):
+    m, w = np.asarray(p.ref_nav, float), np.asarray(p.earth_rate_nav, float)
+    return _norm2(np.cross(m, np.cross(m, w)))
+
+
+ENTRIES = (registry.Entry(
+    name="batista-so3",
+    summary="attitude + Earth rate from a high-grade gyro and ONE vector, observer on SO(3) (RKMK-4 step)",
+    reference="Batista, Silvestre, Oliveira 2019 (SO(3)), eqs. (9), (16)",
+    make=make_observer, default_params=_paper_params,
+    gains=(registry.Gain("alpha1", "1/(s unit^2)", "gain of eq. (9), one value per Table-1 interval", "schedule",
+                         rate=("alpha1 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+           registry.Gain("alpha2", "1/s", "gain of eq. (9), one value per Table-1 interval", "schedule"),
+           registry.Gain("alpha0", "1/(s unit^2)", "gain of eq. (9) (damping of v^ along m)",
+                         rate=("alpha0 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+           registry.Gain("alpha3", "1/(s unit^2)", "attitude gain of eq. (16) on the vector I_m",
+                         rate=("alpha3 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
+           registry.Gain("alpha4", "1/(s unit^4 (rad/s)^2)", "attitude gain of eq. (16) on I_v",
+                         rate=("alpha4 |I_v|^2 (1/s)", _iv_norm2))),
+    frame="NED", hold="zoh", needs=("mag",), module="batista_so3", check=check_params, recorded=False),)

@@ -65,57 +65,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import so3
-from ..integrate import Interval, input_at, rk4_step, rkmk4_step
-from .base import ImuSample, Observer
+from .. import frames, so3
+from ..integrate import input_at, rk4_step, rkmk4_step
+from ..types import ImuSample, Interval, Observer, VectorSample
+from . import registry
 
-__all__ = ["VectorSample", "Params", "State", "Out", "StepInput", "make_observer", "default_params",
+__all__ = ["Params", "State", "Out", "StepInput", "make_observer", "default_params",
            "imu_params", "check_params", "check_inputs", "right_error", "lyapunov", "correction_matrix",
            "correction_quaternion", "FORMS", "UP_NED", "UP_ENU"]
 
 FORMS = ("matrix", "quaternion")
 #: The "up" direction (unit), i.e. the direction of the specific force an accelerometer at rest measures
 #: (minus gravity), in NED (z down) and ENU (z up) inertial frames.
-UP_NED = (0.0, 0.0, -1.0)
-UP_ENU = (0.0, 0.0, 1.0)
+UP_NED = tuple(frames.up("NED"))
+UP_ENU = tuple(frames.up("ENU"))
 
 
 # ------------------------------------------------------------------------------------------------------
 # Data types
 # ------------------------------------------------------------------------------------------------------
-class VectorSample(NamedTuple):
-    """One sample of gyro and vector measurements, with the references valid at that time.
-
-    Fields (one time step; a log stacks them time-major, e.g. body_meas (T, n1, 3)):
-        t:             time (s), shape ().
-        gyr:           angular rate (rad/s), body frame, (3,).
-        body_meas:     complementary measurements a_i = R^T å_i(t), body frame, (n1, 3); None if n1 = 0.
-        ref_inertial:  their references å_i(t), inertial frame, (n1, 3); None = the constant
-                       ``Params.ref_inertial``.
-        inertial_meas: compatible measurements b_j = R b̊_j(t), inertial frame, (n2, 3); None if n2 = 0.
-        ref_body:      their references b̊_j(t), body frame, (n2, 3); None = the constant ``Params.ref_body``.
-
-    Vectors need not be unit (see ``normalize`` in :func:`make_observer`). NaN marks a missing reading.
-    """
-
-    t: jax.Array
-    gyr: jax.Array
-    body_meas: Optional[jax.Array] = None
-    ref_inertial: Optional[jax.Array] = None
-    inertial_meas: Optional[jax.Array] = None
-    ref_body: Optional[jax.Array] = None
-
-    # ImuSample-compatible attributes so that :func:`jaxatt.montecarlo.run`'s shape check (which looks for
-    # ``acc``/``mag``) accepts a VectorSample log. They are not pytree leaves.
-    @property
-    def acc(self):
-        return None
-
-    @property
-    def mag(self):
-        return None
-
-
 class Params(NamedTuple):
     """Observer parameters (a pytree of arrays).
 
@@ -356,16 +324,9 @@ def check_inputs(p: Params, samples, imu_fields: Sequence[str] = ("acc", "mag"))
 # ------------------------------------------------------------------------------------------------------
 # Correction terms: eq. (10) (matrix) and eq. (18) (quaternion), written independently
 # ------------------------------------------------------------------------------------------------------
-def _unit(v):
-    """v / |v| over the last axis, gradient-safe (rows of norm 0 are returned unscaled)."""
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
-    ok = n2 > 0
-    return v / jnp.sqrt(jnp.where(ok, n2, 1.0))
-
-
 def _vectors(u: StepInput, normalize: bool):
     if normalize:
-        return _unit(u.a), _unit(u.ar), _unit(u.b), _unit(u.br)
+        return so3.unit(u.a), so3.unit(u.ar), so3.unit(u.b), so3.unit(u.br)
     return u.a, u.ar, u.b, u.br
 
 
@@ -495,7 +456,7 @@ def make_observer(form: str = "matrix", imu_fields: Sequence[str] = ("acc", "mag
         normalize: normalise measurements and references to unit length (the paper's S^2 setting).
 
     Samples: :class:`VectorSample` (time-varying references) or :class:`ImuSample`, plain (held over the
-    step) or an :class:`jaxatt.integrate.Interval` (linearly interpolated). The same arguments return the
+    step) or an :class:`jaxatt.types.Interval` (linearly interpolated). The same arguments return the
     same Observer object, so :func:`jaxatt.montecarlo.run` reuses its compiled scan.
     """
     if form not in FORMS:
@@ -543,4 +504,42 @@ def _make_observer(form: str, imu_fields: tuple, normalize: bool) -> Observer:
         new = State(t1, r, q, bias, gyr_new)
         return new, Out(t1, r, q, bias, sigma0, ok_a, ok_b, held)
 
-    return Observer(init, step, f"complementary-{form}")
+    def output(p: Params, s: State) -> Out:
+        """The estimate held by ``s``; no correction has been applied yet (zero, no measurement used)."""
+        return Out(s.t, s.r, s.q, s.bias, jnp.zeros_like(s.bias), jnp.zeros(jnp.shape(p.k), bool),
+                   jnp.zeros(jnp.shape(p.l), bool), jnp.zeros((), bool))
+
+    return Observer(init, step, f"complementary-{form}", output)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Registry: the observer on recorded IMU data (acc + mag, ENU)
+# ------------------------------------------------------------------------------------------------------
+def _setup_recorded(p: Params, sample) -> Params:
+    """TRIAD start and the references of the recording: "up" for the accelerometer, the direction of the first
+    magnetometer sample (in the TRIAD ENU frame) for the magnetometer."""
+    r0, m_nav, _ = registry.first_sample_frame(sample)
+    up = jnp.asarray(frames.up("ENU"), m_nav.dtype)
+    return p._replace(r_hat_0=r0, ref_inertial=jnp.stack([up, so3.unit(m_nav)]))
+
+
+def _recorded_defaults(dtype=None) -> Params:
+    """k_acc = 0.5, k_mag = 0.2, k_I = 0.02 1/s (untuned); references and start from the data (``setup``)."""
+    return imu_params(0.5, 0.2, mag_ref=(0.0, 1.0, -1.0), frame="ENU", k_i=0.02, dtype=dtype)
+
+
+def _recorded_observer() -> Observer:
+    return make_observer(form="quaternion", imu_fields=("acc", "mag"), normalize=True)
+
+
+ENTRIES = (registry.Entry(
+    name="complementary",
+    summary="Trumpf et al.'s observer for complementary / compatible vector measurements with time-varying "
+            "references (Mahony's passive filter as a special case), optional gyro bias",
+    reference="Trumpf, Mahony, Hamel, Lageman 2012, eqs. (10), (18)",
+    make=_recorded_observer, default_params=_recorded_defaults,
+    gains=(registry.Gain("k", "1/s", "gains k_i of the complementary measurements (acc, mag), eq. (10)/(18)"),
+           registry.Gain("k_i", "1/s", "gyro-bias integral gain"),
+           registry.Gain("l", "1/s", "gains l_j of the compatible measurements, eq. (10)", tuned=False)),
+    setup=_setup_recorded, setup_fields=("r_hat_0", "ref_inertial"), frame="ENU", hold="next",
+    module="complementary", check=check_params),)

@@ -77,10 +77,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import so3
-from ..integrate import Interval
-from .base import ImuSample, Observer
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "make_observer", "default_params", "BROAD_TAGP", "quat_from_acc_mag_broad",
            "quat_from_acc_mag_triad", "Q_ENU_FROM_NWU", "nwu_to_enu"]
@@ -157,12 +158,6 @@ def nwu_to_enu(q_nwu: jax.Array) -> jax.Array:
 # ------------------------------------------------------------------------------------------------------------
 # Initial orientation
 # ------------------------------------------------------------------------------------------------------------
-def _safe_normalize(v: jax.Array) -> jax.Array:
-    sq = jnp.sum(v * v, axis=-1, keepdims=True)
-    ok = sq > 0
-    return v / jnp.sqrt(jnp.where(ok, sq, 1.0))
-
-
 def _quat_from_rotmat_broad(r: jax.Array) -> jax.Array:
     """BROAD's ``quatFromRotMat``: w = sqrt((1 + tr)/4) >= 0, |x|, |y|, |z| from the diagonal, signs from the
     off-diagonal differences (copysign). The square roots are clipped at 0 against rounding."""
@@ -189,21 +184,14 @@ def quat_from_acc_mag_broad(acc: jax.Array, mag: jax.Array) -> jax.Array:
     z = acc
     x = so3.cross(so3.cross(z, -mag), z)
     y = so3.cross(z, x)
-    r = jnp.stack([_safe_normalize(x), _safe_normalize(y), _safe_normalize(z)], axis=-1)
+    r = jnp.stack([so3.unit(x), so3.unit(y), so3.unit(z)], axis=-1)
     return _quat_from_rotmat_broad(r)
 
 
 def quat_from_acc_mag_triad(acc: jax.Array, mag: jax.Array) -> jax.Array:
-    """Sensor-to-NWU quaternion from one accelerometer (specific force, "up" at rest) and magnetometer sample.
-
-    Rows of R (sensor -> NWU) are the NWU axes in sensor coordinates: up = a/|a|, west = up x m / |.|,
-    north = west x up.
-    """
-    up = _safe_normalize(acc)
-    west = _safe_normalize(so3.cross(up, mag))
-    north = so3.cross(west, up)
-    r = jnp.stack([north, west, up], axis=-2)
-    return so3.quat_canonical(so3.matrix_to_quat(r))
+    """Sensor-to-NWU quaternion from one accelerometer (specific force, "up" at rest) and magnetometer sample
+    (:func:`jaxatt.so3.triad`)."""
+    return so3.quat_canonical(so3.matrix_to_quat(so3.triad(acc, mag, "NWU")))
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -315,7 +303,7 @@ def make_observer(init_mode: str = "broad") -> Observer:
     Returns ``Observer(init, step, "mahony")`` with
     ``init(params, first_sample) -> State`` and ``step(params, state, sample, dt) -> (State, Out)``: the step
     processes ``sample`` (gyro, acc and mag at ``sample.t``) with time step ``dt`` and returns the estimate at
-    ``sample.t + dt``. A :class:`jaxatt.integrate.Interval` input is processed with its start sample (the filter
+    ``sample.t + dt``. A :class:`jaxatt.types.Interval` input is processed with its start sample (the filter
     is a zero-order-hold, explicit-Euler filter by construction).
     """
     if init_mode not in ("broad", "triad"):
@@ -351,4 +339,36 @@ def make_observer(init_mode: str = "broad") -> Observer:
                   acc_used=acc_ok, mag_used=mag_ok)
         return State(t=t, q=q, integral=integral, gyr_last=gyr), out
 
-    return Observer(init, step, "mahony")
+    def output(p: Params, s: State) -> Out:
+        """The estimate held by ``s`` (no measurement used yet)."""
+        q_enu = nwu_to_enu(s.q)
+        no = jnp.zeros((), bool)
+        return Out(t=s.t, q=q_enu, r=so3.quat_to_matrix(q_enu), q_nwu=s.q, bias=-s.integral,
+                   err=jnp.zeros_like(s.integral), acc_used=no, mag_used=no)
+
+    return Observer(init, step, "mahony", output)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Registry
+# ------------------------------------------------------------------------------------------------------------
+def check_params(p: Params) -> None:
+    """kp > 0 and ki >= 0, finite scalars (ValueError otherwise)."""
+    for name, strict in (("kp", True), ("ki", False)):
+        v = np.asarray(getattr(p, name), float)
+        if v.shape != () or not np.isfinite(v) or (v <= 0 if strict else v < 0):
+            raise ValueError(f"Mahony {name} must be a finite number {'> 0' if strict else '>= 0'}, got {v}")
+
+
+def _registry_observer() -> Observer:
+    return make_observer("triad")
+
+
+ENTRIES = (registry.Entry(
+    name="mahony",
+    summary="Mahony's explicit complementary filter with gyro bias (MahonyAHRS.cpp as run by BROAD), TRIAD start",
+    reference="Mahony, Hamel, Pflimlin 2008; Trumpf et al. 2012 eq. (10); BROAD's example code",
+    make=_registry_observer, default_params=lambda dtype=None: default_params(*BROAD_TAGP, dtype=dtype),
+    gains=(registry.Gain("kp", "1/s", "proportional gain Kp", "positive", True, (1e-3, 50.0)),
+           registry.Gain("ki", "1/s^2", "integral (gyro-bias) gain Ki", "positive", True, (1e-7, 10.0))),
+    frame="ENU", hold="next", module="mahony", check=check_params),)

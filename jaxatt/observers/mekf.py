@@ -38,8 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..integrate import Interval
-from .base import ImuSample, Observer
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "make_observer", "default_params", "check_params", "quat_exp", "propagate",
            "update"]
@@ -218,7 +218,40 @@ def make_observer() -> Observer:
             q, cov = propagate(p, q, b, cov, g, dt)
             t0, g_new = sample.t, g
         t1 = t0 + dt
-        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(cov), 0.0))
-        return State(t1, q, b, cov, g_new), Out(t1, so3.quat_to_matrix(q), q, b, sig)
+        return State(t1, q, b, cov, g_new), output(p, State(t1, q, b, cov, g_new))
 
-    return Observer(init=init, step=step, name="mekf")
+    def output(p: Params, s: State) -> Out:
+        sig = jnp.sqrt(jnp.maximum(jnp.diagonal(s.p), 0.0))
+        return Out(s.t, so3.quat_to_matrix(s.q), s.q, s.b_hat, sig)
+
+    return Observer(init=init, step=step, name="mekf", output=output)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Registry: the MEKF on recorded IMU data (ENU, acc "up" reference, first field as reference)
+# ------------------------------------------------------------------------------------------------------
+def _setup_recorded(p: Params, sample) -> Params:
+    """TRIAD start; references: "up" times |a| of the first sample, the first magnetometer sample in ENU."""
+    r0, m_nav, anorm = registry.first_sample_frame(sample)
+    zero = jnp.zeros_like(anorm)
+    return p._replace(r_hat_0=r0, mag_ref_nav=m_nav, acc_ref_nav=jnp.stack([zero, zero, anorm]))
+
+
+def _recorded_defaults(dtype=None) -> Params:
+    """Untuned defaults in recorded-data units: sigma_gyro = 0.002 rad/s, bias random walk 1e-5 rad/s/sqrt(s),
+    R_acc = (1 m/s^2)^2 I, R_mag = (3 unit)^2 I, P0 = blkdiag(1e-4 I, 1e-5 I)."""
+    return default_params((0.0, 0.0, 9.81), (0.0, 17.0, -40.0), gyro_noise_std=0.002, bias_rw=1e-5,
+                          acc_noise_std=1.0, mag_noise_std=3.0, p0_att=1e-4, p0_bias=1e-5, dtype=dtype)
+
+
+ENTRIES = (registry.Entry(
+    name="mekf", summary="multiplicative extended Kalman filter, attitude + gyro bias",
+    reference="Markley & Crassidis 2014, Sec. 6.2 (the MEKF of sensors2020 Section 5.2)",
+    make=make_observer, default_params=_recorded_defaults,
+    gains=(registry.Gain("gyro_noise_std", "rad/s", "std of one gyro sample (process noise)"),
+           registry.Gain("bias_rw", "rad/s/sqrt(s)", "gyro-bias random walk"),
+           registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance, 3x3 SPD", "spd"),
+           registry.Gain("r_mag", "unit^2", "magnetometer noise covariance, 3x3 SPD", "spd"),
+           registry.Gain("p0", "rad^2, (rad/s)^2", "initial error covariance, 6x6 SPD", "spd", tuned=False)),
+    setup=_setup_recorded, setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"), frame="ENU", hold="next",
+    module="mekf", check=check_params),)

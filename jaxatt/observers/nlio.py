@@ -63,8 +63,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..integrate import Interval, input_at, rk4_step
-from .base import ImuSample, Observer
+from ..integrate import input_at, rk4_step
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "VARIANTS", "make_observer", "default_params", "check_params", "injection",
            "projection", "rotation_of", "kalman_gain", "riccati_step", "auxiliary_rhs", "attitude_rhs",
@@ -242,11 +243,6 @@ def check_params(p: Params) -> None:
 # ------------------------------------------------------------------------------------------------------
 # Building blocks (public: tests and other observers use them)
 # ------------------------------------------------------------------------------------------------------
-def _unit(v):
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
-    return v / jnp.sqrt(jnp.where(n2 > 0, n2, 1.0))
-
-
 TRIADS = ("orthonormal", "unit", "raw")
 
 
@@ -260,11 +256,11 @@ def triad_matrix(v1, v2, triad: str = "orthonormal"):
     """
     if triad == "raw":
         return jnp.stack([v1, v2, so3.cross(v1, v2)], axis=-1)
-    u1, u2 = _unit(v1), _unit(v2)
+    u1, u2 = so3.unit(v1), so3.unit(v2)
     c = so3.cross(u1, u2)
     if triad == "unit":
         return jnp.stack([u1, u2, c], axis=-1)
-    n = _unit(c)
+    n = so3.unit(c)
     return jnp.stack([u1, n, so3.cross(u1, n)], axis=-1)
 
 
@@ -323,8 +319,8 @@ def riccati_step(p_post, v_hat, w, sigma_w, q_scale, dt):
 
 def _gram_schmidt(m):
     c1, c2 = m[..., :, 0], m[..., :, 1]
-    e1 = _unit(c1)
-    e2 = _unit(c2 - jnp.sum(e1 * c2, -1, keepdims=True) * e1)
+    e1 = so3.unit(c1)
+    e2 = so3.unit(c2 - jnp.sum(e1 * c2, -1, keepdims=True) * e1)
     return jnp.stack([e1, e2, so3.cross(e1, e2)], axis=-1)
 
 
@@ -444,4 +440,52 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
                   k1 if aux else None, k2 if aux else None)
         return new, out
 
-    return Observer(init=init, step=step, name=variant)
+    def output(p: Params, s: State) -> Out:
+        """The estimate held by ``s`` (auxiliary gains: NLIO-FG's K1, K2; zero for NLIO-TV before its first
+        Kalman update)."""
+        if not aux:
+            return Out(s.t, rotation_of(s.r_hat), s.r_hat, s.b_hat, None, None, None, None)
+        k1, k2 = (jnp.zeros_like(s.p1), jnp.zeros_like(s.p2)) if tv else (p.k1, p.k2)
+        return Out(s.t, rotation_of(s.r_hat), s.r_hat, s.b_hat, s.v1, s.v2, k1, k2)
+
+    return Observer(init=init, step=step, name=variant, output=output)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Registry: NLO, NLIO-FG and NLIO-TV on recorded IMU data (ENU, acc "up" reference, first field as reference)
+# ------------------------------------------------------------------------------------------------------
+def _setup_recorded(p: Params, sample) -> Params:
+    """TRIAD start; references: "up" times |a| of the first sample, the first magnetometer sample in ENU."""
+    r0, m_nav, anorm = registry.first_sample_frame(sample)
+    zero = jnp.zeros_like(anorm)
+    return p._replace(r_hat_0=r0, mag_ref_nav=m_nav, acc_ref_nav=jnp.stack([zero, zero, anorm]))
+
+
+def _recorded_defaults(dtype=None) -> Params:
+    """Untuned defaults in recorded-data units (rad/s, m/s^2, the data's field unit): Kp = 0.3 I, kv = 0.02,
+    K1 = I, K2 = 0.3 I, sigma_gyro = 0.002 rad/s, R_acc = P0_acc = 0.25 I, R_mag = P0_mag = I, L_b = 0.02 rad/s."""
+    return default_params((0.0, 0.0, 9.81), (0.0, 17.0, -40.0), kp=0.3, kv=0.02, k1=1.0, k2=0.3,
+                          gyro_noise_std=0.002, r_acc=0.25, r_mag=1.0, p0_acc=0.25, p0_mag=1.0, bias_bound=0.02,
+                          bias_max=0.024, dtype=dtype)
+
+
+_G_KP = registry.Gain("kp", "1/s", "attitude gain Kp, eq. (10), 3x3 SPD", "spd")
+_G_KV = registry.Gain("kv", "1/s", "gyro-bias gain k_v, eq. (10)")
+_G_K1 = registry.Gain("k1", "1/s", "auxiliary-observer gain K1 of the accelerometer vector (NLIO-FG), 3x3 SPD", "spd")
+_G_K2 = registry.Gain("k2", "1/s", "auxiliary-observer gain K2 of the magnetometer vector (NLIO-FG), 3x3 SPD", "spd")
+_G_TV = (registry.Gain("gyro_noise_std", "rad/s", "gyro noise std of the Riccati recursion (NLIO-TV)"),
+         registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance R_1 (NLIO-TV), 3x3 SPD", "spd"),
+         registry.Gain("r_mag", "unit^2", "magnetometer noise covariance R_2 (NLIO-TV), 3x3 SPD", "spd"))
+_COMMON = dict(reference="sensors2020 (Fusion of an interconnected observer), eqs. (10)-(14), (17), (28)-(30)",
+               default_params=_recorded_defaults, setup=_setup_recorded,
+               setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"), frame="ENU", hold="next", module="nlio",
+               check=check_params)
+
+ENTRIES = (
+    registry.Entry(name="nlo", summary="nonlinear observer with gyro bias on the raw vectors (NLO)",
+                   make=lambda: make_observer("nlo"), gains=(_G_KP, _G_KV), **_COMMON),
+    registry.Entry(name="nlio-fg", summary="interconnected observer, auxiliary linear observer with fixed gains",
+                   make=lambda: make_observer("nlio-fg"), gains=(_G_KP, _G_KV, _G_K1, _G_K2), **_COMMON),
+    registry.Entry(name="nlio", summary="interconnected observer, auxiliary Kalman (time-varying) gains (NLIO-TV)",
+                   make=lambda: make_observer("nlio-tv"), gains=(_G_KP, _G_KV) + _G_TV, **_COMMON),
+)

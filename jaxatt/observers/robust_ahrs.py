@@ -54,8 +54,8 @@ Missing data: a non-finite (or zero) acc / mag sample gets weight 0 (its gate st
 sample is replaced by the gyro low-pass. Padded trials (last sample repeated) need no special care.
 
 Everything is pure JAX: jit, vmap over trials (padded, masked) and over parameter sets, grad through long scans
-(see :mod:`jaxatt.broad_tune`, which learns the parameters from BROAD trials). Shipped tuned parameters:
-:func:`jaxatt.data.gains.load_params`.
+(:func:`jaxatt.fit` learns the parameters from BROAD trials). Shipped tuned parameters: the registry entry
+"robust" (``jaxatt.filter("robust", ...)``) and :func:`jaxatt.data.gains.load_params`.
 """
 from __future__ import annotations
 
@@ -67,8 +67,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..integrate import Interval
-from .base import ImuSample, Observer
+from ..types import ImuSample, Interval, Observer
+from . import registry
 
 __all__ = ["Params", "State", "Out", "Coeffs", "make_observer", "default_params", "params_from_dict",
            "params_to_dict", "coefficients", "run", "PARAM_NAMES", "TUNABLE", "OUTPUTS",
@@ -122,7 +122,7 @@ class Params(NamedTuple):
 
 
 PARAM_NAMES = Params._fields
-#: Parameters that :mod:`jaxatt.broad_tune` learns (all positive; learnt in log space).
+#: Parameters :func:`jaxatt.fit` learns by default (all positive; learnt in log space within bounds).
 TUNABLE = ("tau_acc", "tau_acc_2", "tau_mag", "tau_bias", "tau_bias_rest", "tau_rest",
            "rest_hold", "rest_th_gyr", "rest_th_acc", "acc_th", "acc_hold", "mag_norm_th", "mag_dip_th", "mag_hold",
            "tau_mag_ref")
@@ -441,19 +441,10 @@ def _split3(v):
 # ------------------------------------------------------------------------------------------------------------
 # Observer interface
 # ------------------------------------------------------------------------------------------------------------
-def _safe_unit(v):
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
-    return v / jnp.sqrt(jnp.where(n2 > 0, n2, 1.0))
-
-
 def quat_from_acc_mag_enu(acc, mag):
     """Sensor-to-ENU quaternion(s) (..., 4), (w, x, y, z), from accelerometer ("up" at rest) and magnetometer
     samples (..., 3) (TRIAD: up = a / |a|, east = m x up / |.|, north = up x east; rows of R: east, north, up)."""
-    up = _safe_unit(acc)
-    east = _safe_unit(so3.cross(mag, up))
-    north = so3.cross(up, east)
-    r = jnp.stack([east, north, up], axis=-2)
-    return so3.quat_canonical(so3.matrix_to_quat(r))
+    return so3.quat_canonical(so3.matrix_to_quat(so3.triad(acc, mag, "ENU")))
 
 
 def _valid(v):
@@ -473,7 +464,7 @@ def _init(p: Params, sample: ImuSample) -> State:
     mag_s = jnp.where(mag_ok & acc_ok, mag, jnp.array([0.0, 1.0, -1.0], dtype))
     q0 = quat_from_acc_mag_enu(acc_s, mag_s)
     mnorm = jnp.sqrt(jnp.sum(mag_s * mag_s, axis=-1))
-    sdip = jnp.sum(mag_s * _safe_unit(acc_s), axis=-1) / mnorm  # sin(dip) = m . up / |m|
+    sdip = jnp.sum(mag_s * so3.unit(acc_s), axis=-1) / mnorm  # sin(dip) = m . up / |m|
     anorm = jnp.sqrt(jnp.sum(acc_s * acc_s, axis=-1))
     zero = jnp.zeros_like(anorm)
     return State(t=jnp.asarray(sample.t, dtype), q=q0, bias=jnp.zeros_like(acc_s),
@@ -503,7 +494,19 @@ def _step(p: Params, s: State, sample, dt):
     return new, out
 
 
-_OBSERVER = Observer(_init, _step, "robust_ahrs")
+def _output(p: Params, s: State) -> Out:
+    """The estimate held by ``s``: the gates from its held deviations, no heading correction yet."""
+    dtype = s.q.dtype
+    lo = jax.nn.sigmoid(-jnp.asarray(p.gate_sharpness, dtype))
+    c = Coeffs(*([jnp.zeros((), dtype)] * len(Coeffs._fields)))._replace(
+        sharpness=jnp.asarray(p.gate_sharpness, dtype), gate_lo=lo, gate_scale=1.0 / (1.0 - 2.0 * lo))
+    w_mag, w_acc, w_rest = _gate(s.mag_e, c), _gate(s.acc_e, c), _gate(s.rest_e, c)
+    return Out(t=s.t, q=s.q, r=so3.quat_to_matrix(s.q), bias=s.bias, mag_disturbed=w_mag < 0.5,
+               acc_rejected=w_acc < 0.5, rest=w_rest > 0.5, mag_weight=w_mag, acc_weight=w_acc, rest_weight=w_rest,
+               heading_error=jnp.zeros_like(s.mag_e))
+
+
+_OBSERVER = Observer(_init, _step, "robust_ahrs", _output)
 
 
 def make_observer() -> Observer:
@@ -511,7 +514,7 @@ def make_observer() -> Observer:
 
     ``init(params, first_sample) -> State`` (TRIAD start); ``step(params, state, sample, dt) -> (State, Out)``
     processes ``sample`` (gyro over [t, t + dt], then acc, then mag at that sample) and returns the estimate at
-    ``sample.t + dt``. An :class:`jaxatt.integrate.Interval` input is processed with its start sample. Both
+    ``sample.t + dt``. An :class:`jaxatt.types.Interval` input is processed with its start sample. Both
     broadcast over leading batch axes (the step is elementwise), and both vmap.
     """
     return _OBSERVER
@@ -562,3 +565,50 @@ def run(p: Params, gyr, acc, mag, dt, *, outputs: Sequence[str] = ("q",), dtype=
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(jnp.asarray(gyr).dtype, jnp.float32)
     cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     return _run_jit(Params(*map(cast, p)), cast(gyr), cast(acc), cast(mag), cast(dt), tuple(outputs))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Registry
+# ------------------------------------------------------------------------------------------------------------
+def check_params(p: Params) -> None:
+    """Raise ValueError naming the first parameter that is not a finite positive scalar."""
+    for name in PARAM_NAMES:
+        v = np.asarray(getattr(p, name), float)
+        if v.shape != () or not np.isfinite(v) or v <= 0:
+            raise ValueError(f"robust AHRS parameter {name} must be a finite positive number, got {v}")
+
+
+_UNITS = dict(tau_acc="s", tau_acc_2="s", tau_mag="s", tau_bias="s", tau_bias_rest="s", tau_rest="s",
+              rest_hold="s", rest_th_gyr="rad/s", rest_th_acc="m/s^2", acc_th="m/s^2", acc_hold="s",
+              mag_norm_th="1", mag_dip_th="rad", mag_hold="s", tau_mag_ref="s", gravity="m/s^2", gate_sharpness="1",
+              bias_max="rad/s")
+_BOUNDS = dict(
+    tau_acc=(0.05, 30.0), tau_acc_2=(1e-3, 30.0), tau_mag=(0.5, 200.0), tau_bias=(1.0, 1e4),
+    tau_bias_rest=(0.1, 100.0), tau_rest=(0.05, 10.0), rest_hold=(0.05, 20.0),
+    rest_th_gyr=(0.1 * _DEG, 20 * _DEG), rest_th_acc=(0.02, 5.0), acc_th=(0.5, 200.0), acc_hold=(0.005, 5.0),
+    mag_norm_th=(0.01, 2.0), mag_dip_th=(0.5 * _DEG, 90 * _DEG), mag_hold=(0.01, 20.0), tau_mag_ref=(1.0, 1e4))
+
+
+def _param_docs() -> dict:
+    lines = Params.__doc__.split("Fields:")[1].strip().splitlines()
+    docs, name = {}, None
+    for ln in lines:
+        head = ln.strip().split(":", 1)
+        if len(head) == 2 and head[0] in PARAM_NAMES:
+            name = head[0]
+            docs[name] = head[1].strip()
+        elif name:
+            docs[name] += " " + ln.strip()
+    return docs
+
+
+_DOCS = _param_docs()
+
+ENTRIES = (registry.Entry(
+    name="robust",
+    summary="real-data 9D AHRS: inclination from low-passed acc, heading from mag only, rest-based bias, learnable "
+            "magnetic-disturbance and acceleration gates; ships gains tuned on BROAD",
+    reference="Mahony et al. 2008 / Trumpf et al. 2012 structure, VQF-style gating (Laidig & Seel 2023)",
+    make=make_observer, default_params=default_params,
+    gains=tuple(registry.Gain(f, _UNITS[f], _DOCS[f], "positive", f in TUNABLE, _BOUNDS.get(f)) for f in PARAM_NAMES),
+    frame="ENU", hold="next", shipped="robust_broad_all.json", module="robust_ahrs", check=check_params),)

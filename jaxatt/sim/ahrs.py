@@ -38,7 +38,7 @@ from jax.scipy.special import ndtri
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..observers.base import ImuSample
+from ..types import ImuSample
 from .trajectories import SinusoidRates
 
 __all__ = ["AhrsScenario", "AhrsTruth", "N_CHANNELS", "PAPER_GRAVITY", "PAPER_MAG_NED_G", "PAPER_GYRO_BIAS",

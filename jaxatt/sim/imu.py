@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..observers.base import ImuSample
+from ..types import ImuSample
 
 __all__ = ["ImuScenario", "Truth", "NOISE_BLOCK", "arw_deg_per_hour_to_rad", "sample_sensors", "noise_block",
            "initial_noise", "truth_at", "N_CHANNELS"]

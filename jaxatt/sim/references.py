@@ -1,6 +1,6 @@
 """Scenarios of Trumpf et al. (2012) (../shared/papers/trumpf2012-time-varying-reference-observers.txt):
 vector measurements of possibly time-varying reference directions, as pure-JAX generators of the true
-attitude and :class:`jaxatt.observers.complementary.VectorSample` logs.
+attitude and :class:`jaxatt.types.VectorSample` logs.
 
 Frames: an abstract inertial frame {A} and the body frame {B}; R (body to inertial) follows dR/dt = R S(Omega)
 (eq. 1) from R(0) = ``r0`` with the exact Omega(t) of the profile (4th-order Magnus steps). Measurements:
@@ -39,7 +39,7 @@ import numpy as np
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..observers.complementary import VectorSample
+from ..types import VectorSample
 from .trajectories import SinusoidRates
 
 __all__ = ["Directions", "VectorScenario", "VectorTruth", "vector_errors", "rotating_reference",

@@ -1,7 +1,9 @@
-"""Section IV of batista2019-ges as an experiment: scenario, observer, parameters, errors and the paper's
-published numbers (Table 2 and the Monte Carlo mean angle errors)."""
+"""Section IV of Batista, Silvestre & Oliveira (2019, GES) as a study: scenario, observer, parameters, errors and
+the paper's published numbers (Table 2 and the Monte Carlo mean angle errors). Frames: NED (R maps body to NED);
+units: nT, rad/s, s (errors in the units of Table 2)."""
 from __future__ import annotations
 
+import sys
 from typing import NamedTuple, Optional, Sequence
 
 import jax.numpy as jnp
@@ -10,6 +12,7 @@ import numpy as np
 from .. import so3
 from ..observers import batista_ges as ges
 from ..sim import earth, imu, trajectories
+from . import base
 
 NAME = "batista-ges"
 DURATION = 3600.0  # s
@@ -103,3 +106,100 @@ def errors(truth: imu.Truth, out: ges.Out):
         "earth_rate": jnp.rad2deg(truth.earth_rate_body.astype(dt) - out.earth_rate) * 3600.0,
         "z2": (truth.r.astype(dt) - out.r_hat).reshape(9),
     }
+
+
+def config(**overrides) -> Config:
+    """The Config of Section IV with ``overrides`` (field names of :class:`Config`), validated: the steady-state
+    window defaults to t >= min(2400 s, 2/3 of the duration) and must start inside the run."""
+    bad = set(overrides) - set(Config._fields)
+    if bad:
+        raise ValueError(f"unknown {NAME} settings {sorted(bad)} (settings: {', '.join(Config._fields)})")
+    dur = float(overrides.get("duration", DURATION))
+    overrides.setdefault("window_start", min(WINDOW_START, 2.0 * dur / 3.0))
+    cfg = Config(**overrides)
+    check_config(cfg)
+    return cfg
+
+
+def check_config(cfg) -> None:
+    """ValueError naming the first setting that cannot run (trajectory, times, window, noise, latitude)."""
+    if cfg.trajectory not in ("slow", "aggressive"):
+        raise ValueError(f"trajectory must be 'slow' or 'aggressive', got {cfg.trajectory!r}")
+    for name in ("duration", "dt"):
+        v = float(getattr(cfg, name))
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive number of seconds, got {v}")
+    if cfg.duration < cfg.dt:
+        raise ValueError(f"duration ({cfg.duration} s) must be at least one step dt = {cfg.dt} s")
+    if not (0.0 <= cfg.window_start < cfg.duration):
+        raise ValueError(f"window_start ({cfg.window_start} s) must lie inside the run [0, {cfg.duration}) s")
+    if not -90.0 <= cfg.latitude_deg <= 90.0:
+        raise ValueError(f"latitude must be in [-90, 90] degrees, got {cfg.latitude_deg}")
+    for name in ("gyro_arw_deg_h_rthz", "mag_noise_nT", "noise_scale", "rate_scale"):
+        v = float(getattr(cfg, name))
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+    if cfg.hold not in ("zoh", "linear"):
+        raise ValueError(f"hold must be 'zoh' or 'linear', got {cfg.hold!r}")
+
+
+def comparable(cfg) -> "str | None":
+    """None when ``cfg`` is the set-up of the published numbers of its trajectory, else the settings that differ."""
+    ref = Config(trajectory=cfg.trajectory, hold=cfg.hold, x1_init=cfg.x1_init)
+    diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
+            if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))]
+    return "; ".join(diff) if diff else None
+
+
+class BatistaStudy(base.Study):
+    """Section IV / 4 of either Batista et al. (2019) paper; ``mod`` is the study module (this one or
+    :mod:`jaxatt.studies.batista_so3`), whose functions define the set-up."""
+
+    def __init__(self, mod, paper: str):
+        self.mod = mod
+        self.name = mod.NAME
+        self.paper = paper
+        self.tuned = self.entry = mod.NAME
+        self.units = mod.UNITS
+        self.rows = mod.TABLE_ROWS
+
+    def config(self, **overrides):
+        return self.mod.config(**overrides)
+
+    def scenario(self, cfg):
+        return self.mod.scenario(cfg)
+
+    def observers(self, cfg, dtype=None):
+        import jax.numpy as jnp
+
+        return {self.tuned: (self.mod.observer(cfg), self.mod.params(cfg, dtype=jnp.float64))}
+
+    def errors(self, truth, out):
+        return self.mod.errors(truth, out)
+
+    def published(self, cfg):
+        return dict(self.mod.PAPER.get(cfg.trajectory, {}))
+
+    def comparable(self, cfg):
+        return self.mod.comparable(cfg)
+
+    def notes(self, cfg):
+        return self.mod.notes(cfg)
+
+    def check_params(self, p):
+        self.mod.check_params(p)
+
+    def plot(self, cfg, payload, results, path, dtype=None):
+        """The paper's convergence figure (run 0, every 0.1 s)."""
+        from .. import montecarlo, plot
+
+        obs, p = self.observers(cfg)[self.tuned]
+        _, trace, _ = montecarlo.simulate(self.scenario(cfg), obs, p, duration=cfg.duration, dt=cfg.dt,
+                                          seed=payload["config"]["seed"], errors_fn=self.errors,
+                                          window_start=cfg.window_start, hold=cfg.hold, trace_every=10, dtype=dtype)
+        plot.convergence_figure(trace, path, title=f"{payload['experiment']} (run 0)", panels=self.mod.PLOT_PANELS,
+                                steady_from_s=cfg.window_start)
+
+
+STUDY = BatistaStudy(sys.modules[__name__], "Batista, Silvestre, Oliveira 2019 (GES attitude observer with Earth "
+                                            "velocity estimation), Section IV")

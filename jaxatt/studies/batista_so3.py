@@ -1,8 +1,9 @@
-"""Section 4 of batista2019-so3 as an experiment: the same platform, sensors and trajectory as batista2019-ges
-Section IV (the scenario is shared with :mod:`jaxatt.experiments.batista_ges`), the observer on SO(3), its
-errors and the paper's published numbers (Table 2 and the Monte Carlo mean angle errors)."""
+"""Section 4 of Batista, Silvestre & Oliveira (2019, SO(3)) as a study: the same platform, sensors and trajectory as
+the GES paper's Section IV (the scenario is shared with :mod:`jaxatt.studies.batista_ges`), the observer on SO(3),
+its errors and the paper's published numbers (Table 2 and the Monte Carlo mean angle errors). Frames: NED."""
 from __future__ import annotations
 
+import sys
 from typing import NamedTuple, Optional, Sequence
 
 import jax.numpy as jnp
@@ -96,3 +97,27 @@ def errors(truth: imu.Truth, out: so3obs.Out):
         "r_err_offdiag": r_err[_OFFDIAG],
         "earth_rate": jnp.rad2deg(truth.earth_rate_body.astype(dt) - out.earth_rate) * 3600.0,
     }
+
+
+def config(**overrides) -> Config:
+    """The Config of Section 4 with ``overrides``, validated (see :func:`jaxatt.studies.batista_ges.config`)."""
+    bad = set(overrides) - set(Config._fields)
+    if bad:
+        raise ValueError(f"unknown {NAME} settings {sorted(bad)} (settings: {', '.join(Config._fields)})")
+    dur = float(overrides.get("duration", DURATION))
+    overrides.setdefault("window_start", min(WINDOW_START, 2.0 * dur / 3.0))
+    cfg = Config(**overrides)
+    batista_ges.check_config(cfg)
+    return cfg
+
+
+def comparable(cfg) -> "str | None":
+    """None when ``cfg`` is the set-up of the published numbers of its trajectory, else the settings that differ."""
+    ref = Config(trajectory=cfg.trajectory, hold=cfg.hold, m_init=cfg.m_init, integrator=cfg.integrator)
+    diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
+            if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))]
+    return "; ".join(diff) if diff else None
+
+
+STUDY = batista_ges.BatistaStudy(sys.modules[__name__], "Batista, Silvestre, Oliveira 2019 (attitude observer on "
+                                                        "SO(3) with Earth velocity estimation), Section 4")

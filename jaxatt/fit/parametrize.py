@@ -1,4 +1,4 @@
-"""Constrained parametrizations of observer gains, for gradient-based tuning (:mod:`jaxatt.tune`).
+"""Constrained parametrizations of observer gains, for gradient-based tuning (:mod:`jaxatt.fit`).
 
 An optimizer moves an unconstrained vector ``u``; a :class:`Transform` maps it to a gain that is always valid:
 
@@ -20,12 +20,12 @@ without a transform are never touched. Its :meth:`Parametrization.bind` takes th
 returns a bound copy that maps ``theta`` (a dict field -> unconstrained array, a pytree for optax) to params
 with :meth:`BoundParametrization.constrain`; frozen elements get exactly zero gradient.
 
-Per-experiment descriptions (which fields of which Params are gains, their transforms, units and meaning)
-live in :data:`GAINS`; :func:`register_gains` adds an experiment (e.g. the AHRS observers of
-sensors2020-interconnected-observer), :func:`for_experiment` builds its Parametrization.
+Which fields of an observer's Params are gains, with their units and constraints, is declared once in the
+observer registry (:class:`jaxatt.observers.registry.Gain`); :func:`for_gains` maps those declarations to
+transforms, :func:`for_params` builds a parametrization for any Params of your own (every positive field).
 
 Conventions: gains keep the units of the observer's Params (SI; the vector-sensor unit of the scenario, nT
-for the Batista papers); every :class:`Gain` names its unit.
+for the Batista papers).
 """
 from __future__ import annotations
 
@@ -39,9 +39,10 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "LogBasis", "ScaledSPD",
-           "Parametrization",
-           "BoundParametrization", "Gain", "GAINS", "register_gains", "gains_of", "for_experiment",
-           "schedule_mask", "schedule_mask_from", "refine_schedule", "schedule_fields", "softplus_inverse"]
+           "Parametrization", "BoundParametrization", "from_constraint", "for_gains", "for_params",
+           "schedule_mask", "schedule_mask_from", "refine_schedule", "softplus_inverse"]
+
+from ..schedule import mask as schedule_mask, mask_from as schedule_mask_from, refine as refine_schedule  # noqa: E402
 
 
 def softplus_inverse(y):
@@ -96,10 +97,18 @@ class Positive(Transform):
 
     method: str = "log"
     scale: Any = None
+    bounds: Any = None
 
     def __post_init__(self):
         if self.method not in ("log", "softplus"):
             raise ValueError(f"Positive.method must be 'log' or 'softplus', got {self.method!r}")
+
+    def u_bounds(self):
+        """(low, high) of u that keep the gain inside ``bounds`` (None without bounds)."""
+        if self.bounds is None:
+            return None
+        lo, hi = (float(b) for b in self.bounds)
+        return float(np.min(self.inverse(lo))), float(np.max(self.inverse(hi)))
 
     def bind(self, value):
         if self.scale is not None:
@@ -112,7 +121,7 @@ class Positive(Transform):
     def inverse(self, value):
         v = np.asarray(value, float)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"a Positive gain must be finite and > 0, got {v}")
+            raise ValueError(f"a positive gain must be finite and > 0, got {v}")
         s = np.asarray(1.0 if self.scale is None else self.scale, float)
         return np.log(v / s) if self.method == "log" else softplus_inverse(v / s)
 
@@ -291,52 +300,6 @@ class ScaledSPD(Transform):
         return f"symmetric positive definite, G = D G0 D with D = diag(exp(B u)), fixed {np.shape(self.basis)} basis"
 
 
-def schedule_mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:
-    """Boolean mask (True = tunable) over the ``n_intervals`` values of a :class:`Schedule`; negative
-    indices count from the end (``[-1]`` tunes the last interval only, i.e. the steady-state gain)."""
-    m = np.zeros(n_intervals, bool)
-    m[np.asarray(list(tunable), int)] = True
-    return m
-
-
-def schedule_mask_from(switch_times: Sequence[float], t_from: float) -> np.ndarray:
-    """Boolean mask (True = tunable) of the schedule intervals that start at or after ``t_from`` s (the first
-    interval starts at 0 s); earlier intervals keep their values, e.g. a paper's start-up schedule."""
-    starts = np.concatenate([[0.0], np.asarray(switch_times, float)])
-    return starts >= float(t_from)
-
-
-def refine_schedule(params, times: Sequence[float], fields: Sequence[str], *, times_field: str = "switch_times"):
-    """``params`` with extra switch times inserted into its piecewise-constant gain schedules, the gains
-    unchanged as functions of time (each new interval copies the value in force there).
-
-    Use it to give a tuner more freedom than the paper's schedule while starting from exactly the paper's
-    observer: batista2019-ges Table 1 stops switching at 720 s; ``refine_schedule(p, [1200, 1800, 2400],
-    ["alpha1", "alpha2"])`` lets the gains keep changing after it.
-
-    Args:
-        params: a Params NamedTuple with ``times_field`` (n-1,) s and schedule fields of shape (n, ...).
-        times: new switch times, s (finite; ones already present are ignored).
-        fields: the schedule fields, each of shape (n, ...) (:func:`schedule_fields` lists an experiment's).
-    """
-    st = np.asarray(getattr(params, times_field), float)
-    new = np.asarray(list(times), float)
-    if new.ndim != 1 or not np.all(np.isfinite(new)):
-        raise ValueError(f"refine_schedule: times must be finite numbers, got {times!r}")
-    merged = np.unique(np.concatenate([st, new]))
-    n = st.shape[0] + 1
-    # interval of the old schedule in force on each new interval (gains[i] hold on [st[i-1], st[i]))
-    starts = np.concatenate([[-np.inf], merged])
-    idx = np.searchsorted(st, starts, side="right")
-    out = {times_field: jnp.asarray(merged, jnp.asarray(getattr(params, times_field)).dtype)}
-    for f in fields:
-        v = jnp.asarray(getattr(params, f))
-        if v.ndim < 1 or v.shape[0] != n:
-            raise ValueError(f"refine_schedule: {f} has shape {v.shape}, want ({n}, ...) for {n - 1} switch times")
-        out[f] = v[jnp.asarray(idx)]
-    return params._replace(**out)
-
-
 # ------------------------------------------------------------------------------------------------------
 # Parametrization of a Params NamedTuple
 # ------------------------------------------------------------------------------------------------------
@@ -384,6 +347,15 @@ class BoundParametrization(NamedTuple):
         for f, m in self.masks.items():
             if f in out and not np.all(m):
                 out[f] = jnp.where(jnp.asarray(m), out[f], 0.0)
+        return out
+
+    def clip(self, theta):
+        """``theta`` with each bounded positive gain's u clipped into its bounds (projected gradient steps)."""
+        out = dict(theta)
+        for f, tr in self.transforms.items():
+            ub = tr.u_bounds() if isinstance(tr, Positive) else None
+            if ub is not None:
+                out[f] = jnp.clip(out[f], ub[0], ub[1])
         return out
 
     def n_free(self) -> int:
@@ -446,110 +418,76 @@ class Parametrization:
 
 
 # ------------------------------------------------------------------------------------------------------
-# Per-experiment descriptions of the gains
+# From the registry's gain declarations, or from any Params
 # ------------------------------------------------------------------------------------------------------
-class Gain(NamedTuple):
-    """One tunable field of an observer's Params: its transform, unit and meaning.
-
-    ``rate``: optional ``(label, fn(params) -> factor)``; ``value * factor`` is shown next to the value in
-    the gains JSON (e.g. alpha1 |I_m|^2 in 1/s for a gain whose own unit is 1/(s nT^2)).
-    """
-
-    field: str
-    transform: Transform
-    unit: str
-    doc: str
-    rate: Optional[Tuple[str, Callable[[Any], Any]]] = None
-
-
-def _norm2(v):
-    v = np.asarray(v, float)
-    return float(v @ v)
+def from_constraint(gain) -> Transform:
+    """The transform of a :class:`jaxatt.observers.registry.Gain`'s constraint (log maps for positive gains)."""
+    c = gain.constraint
+    if c == "positive":
+        return Positive("log", bounds=gain.bounds)
+    if c == "schedule":
+        return Schedule("log")
+    if c == "spd":
+        return SPD()
+    if c == "spd-diagonal":
+        return SPD(structure="diagonal")
+    if c == "real":
+        return Identity()
+    raise ValueError(f"gain {gain.field}: unknown constraint {c!r}")
 
 
-def _iv_norm2(p):
-    m, w = np.asarray(p.ref_nav, float), np.asarray(p.earth_rate_nav, float)
-    return _norm2(np.cross(m, np.cross(m, w)))
-
-
-GAINS: Dict[str, Tuple[Gain, ...]] = {
-    "batista-ges": (
-        Gain("alpha1", Schedule("log"), "1/s",
-             "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)"),
-        Gain("alpha2", Schedule("log"), "1/s^2",
-             "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)"),
-        Gain("gain_z", SPD(), "1/s",
-             "z-space attitude gain G = C2^T Q^-1 C2 of eq. (21), 9x9 SPD acting on z2 = rows of R stacked"),
-    ),
-    "batista-so3": (
-        Gain("alpha1", Schedule("log"), "1/(s unit^2)", "gain of eq. (9), one value per Table-1 interval",
-             ("alpha1 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-        Gain("alpha2", Schedule("log"), "1/s", "gain of eq. (9), one value per Table-1 interval"),
-        Gain("alpha0", Positive("log"), "1/(s unit^2)", "gain of eq. (9) (damping of v^ along m)",
-             ("alpha0 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-        Gain("alpha3", Positive("log"), "1/(s unit^2)", "attitude gain of eq. (16) on the vector I_m",
-             ("alpha3 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-        Gain("alpha4", Positive("log"), "1/(s unit^4 (rad/s)^2)", "attitude gain of eq. (16) on I_v",
-             ("alpha4 |I_v|^2 (1/s)", _iv_norm2)),
-    ),
-}
-
-
-_NLIO_FG_GAINS = (
-    Gain("kp", SPD(), "1/s", "attitude gain Kp of the NLIO (sensors2020-nlio eq. (10)), 3x3 SPD"),
-    Gain("kv", Positive("log"), "1/s", "gyro-bias gain k_v of the NLIO (eq. (10))"),
-    Gain("k1", SPD(), "1/s", "fixed gain K1 of the auxiliary observer of v1 = accelerometer (NLIO-FG), 3x3 SPD"),
-    Gain("k2", SPD(), "1/s", "fixed gain K2 of the auxiliary observer of v2 = magnetometer (NLIO-FG), 3x3 SPD"),
-)
-for _case in ("nlio-case1", "nlio-case2", "nlio-case3"):
-    GAINS[_case] = _NLIO_FG_GAINS
-
-
-def register_gains(experiment: str, gains: Sequence[Gain]) -> None:
-    """Declare the tunable gains of an experiment (e.g. ``"nlio-case1"``: Kp as :class:`SPD`, k1, k2 as
-    :class:`Positive`); :func:`for_experiment` and :mod:`jaxatt.tune` then use them."""
-    gains = tuple(gains)
-    names = [g.field for g in gains]
-    if len(set(names)) != len(names):
-        raise ValueError(f"duplicate gain fields {names}")
-    GAINS[experiment] = gains
-
-
-def gains_of(experiment: str) -> Tuple[Gain, ...]:
-    try:
-        return GAINS[experiment]
-    except KeyError:
-        raise ValueError(f"no tunable gains declared for {experiment!r} (known: {sorted(GAINS)}); "
-                         "declare them with jaxatt.parametrize.register_gains") from None
-
-
-def schedule_fields(experiment: str) -> Tuple[str, ...]:
-    """The fields of an experiment's gains that are piecewise-constant :class:`Schedule` s."""
-    return tuple(g.field for g in gains_of(experiment) if isinstance(g.transform, Schedule))
-
-
-def for_experiment(experiment: str, *, freeze: Sequence[str] = (), only: Optional[Sequence[str]] = None,
-                   masks: Optional[Mapping[str, Any]] = None, method: Optional[str] = None,
-                   transforms: Optional[Mapping[str, Transform]] = None) -> Parametrization:
-    """The Parametrization of an experiment's gains (:data:`GAINS`), with chosen fields frozen or only some
-    tunable, optional masks (field -> bool array over its unconstrained vector, True = tunable),
-    ``method`` ("log" / "softplus") overriding the map of every positive gain, and ``transforms`` (field ->
-    :class:`Transform`) replacing the map of chosen gains (e.g. a :class:`LogBasis` for a schedule)."""
-    known = [g.field for g in gains_of(experiment)]
-    bad = [f for f in (transforms or {}) if f not in known]
-    if bad:
-        raise ValueError(f"transforms for {bad}: not gains of {experiment} (gains: {known})")
+def for_gains(gains: Sequence[Any], *, tune: Optional[Sequence[str]] = None, freeze: Sequence[str] = (),
+              masks: Optional[Mapping[str, Any]] = None, method: Optional[str] = None,
+              transforms: Optional[Mapping[str, Transform]] = None) -> Parametrization:
+    """The Parametrization of declared gains (:class:`jaxatt.observers.registry.Gain`): those tuned by default, or
+    exactly ``tune``; minus ``freeze``; optional ``masks`` (field -> bool array over its unconstrained vector, True =
+    tunable), ``method`` ("log" / "softplus") for every positive gain, and ``transforms`` (field -> Transform)
+    replacing the map of chosen gains (e.g. a :class:`LogBasis` for a schedule)."""
+    known = {g.field: g for g in gains}
+    for label, fields in (("tune", tune or ()), ("freeze", freeze), ("transforms", transforms or {}),
+                          ("masks", masks or {})):
+        bad = [f for f in fields if f not in known]
+        if bad:
+            raise ValueError(f"{label}: {bad} are not gains of this observer (gains: {sorted(known)})")
+    chosen = list(tune) if tune is not None else [g.field for g in gains if g.tuned]
     trs = {}
-    for g in gains_of(experiment):
-        tr = (transforms or {}).get(g.field, g.transform)
+    for f in chosen:
+        if f in freeze:
+            continue
+        tr = (transforms or {}).get(f, from_constraint(known[f]))
         if method is not None and isinstance(tr, Positive):
             tr = dataclasses.replace(tr, method=method)
-        trs[g.field] = tr
+        trs[f] = tr
+    if not trs:
+        raise ValueError("no gain left to tune")
     p = Parametrization(trs)
-    if only is not None:
-        p = p.only(*only)
-    if freeze:
-        p = p.freeze(*freeze)
     for f, m in (masks or {}).items():
         p = p.with_mask(f, m)
     return p
+
+
+def for_params(params, tune: Optional[Sequence[str]] = None) -> Parametrization:
+    """A Parametrization of a Params NamedTuple of your own: the fields named in ``tune``, or by default every
+    floating field whose values are all > 0, each kept positive (learnt in log space). Other fields are fixed."""
+    if not hasattr(params, "_fields"):
+        raise ValueError(f"params must be a NamedTuple (fields are the gains), got {type(params).__name__}")
+    trs = {}
+    for f in params._fields:
+        v = getattr(params, f)
+        if v is None:
+            continue
+        a = np.asarray(v)
+        positive = np.issubdtype(a.dtype, np.floating) and a.size > 0 and bool(np.all(a > 0))
+        if tune is None and positive:
+            trs[f] = Positive("log")
+        elif tune is not None and f in tune:
+            if not positive:
+                raise ValueError(f"params.{f} = {a} cannot be tuned as a positive gain (all values must be > 0)")
+            trs[f] = Positive("log")
+    if tune is not None:
+        bad = [f for f in tune if f not in params._fields]
+        if bad:
+            raise ValueError(f"tune: {bad} are not fields of {type(params).__name__} (fields: {params._fields})")
+    if not trs:
+        raise ValueError(f"no positive floating field of {type(params).__name__} to tune; name them with tune=")
+    return Parametrization(trs)

@@ -1,4 +1,4 @@
-"""Section 5 of sensors2020-interconnected-observer-gyro-bias as experiments: Simulation A (Cases 1-4: NLO,
+"""Section 5 of the sensors2020 paper (interconnected observer with gyro-bias estimation) as studies: Simulation A (Cases 1-4: NLO,
 NLO-a, NLIO-FG, NLIO-TV, NLIO-TV-a) and Simulation B (MEKF and NLIO-TV; the NLCO of the paper's reference [28]
 is not among the papers and is left out: its published numbers are printed, not reproduced).
 
@@ -40,10 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..metrics import wrap_angle
 from ..observers import mekf as mekf_mod
 from ..observers import nlio as nlio_mod
 from ..sim import ahrs
+from . import base
 
 NAME = "nlio"
 EXPERIMENTS = ("nlio-case1", "nlio-case2", "nlio-case3", "nlio-case4", "nlio-simb")
@@ -295,8 +295,7 @@ def initial_attitude_hook(angles: Tuple[str, ...] = ANGLES):
 
 def euler_errors_deg(r_true, r_est):
     """Roll, pitch, yaw errors (deg): ZYX angles of the estimate minus the truth's, wrapped to (-180, 180]."""
-    et, ee = so3.matrix_to_euler_zyx(r_true), so3.matrix_to_euler_zyx(r_est)
-    return tuple(jnp.rad2deg(wrap_angle(a - b)) for a, b in zip(ee, et))
+    return tuple(jnp.rad2deg(e) for e in so3.euler_error_zyx(r_true, r_est))
 
 
 def errors(truth: ahrs.AhrsTruth, out):
@@ -323,27 +322,8 @@ def trace(truth, out, errs, angle_deg):
 
 
 # ------------------------------------------------------------------------------------------------------
-# Reproduction: run every compared observer, print paper-like tables, JSON, figures
+# Reproduction: tables laid out like the paper's, averaged error curves, figures
 # ------------------------------------------------------------------------------------------------------
-def _write_json(path: Optional[str], payload: dict):
-    if not path:
-        return
-    import json
-
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=1, allow_nan=True)
-    os.replace(tmp, path)  # atomic: an interrupted write never leaves a broken file
-
-
-def _stats(v) -> dict:
-    v = np.asarray(v, float)
-    return {"mean": np.nanmean(v, axis=0).tolist(), "std": np.nanstd(v, axis=0).tolist(),
-            "min": np.nanmin(v, axis=0).tolist(), "max": np.nanmax(v, axis=0).tolist(), "per_run": v.tolist()}
-
-
 def table_values(per_run: dict, metric: str, windows=("transient", "steady")) -> list:
     """(roll, pitch, yaw) x windows of ``metric`` ("mae" or "rmse"), per-run values averaged over runs (deg)."""
     return [float(np.nanmean(per_run[f"{metric}_{w}_{a}"])) for w in windows for a in ANGLES]
@@ -435,8 +415,8 @@ def format_report(payload: dict) -> str:
     paper = PAPER[key]
     done = payload["observers"]
     n_runs = min((e["runs_done"] for e in done.values()), default=0)
-    text = [f"nlio-{key}: {n_runs} runs x {c['duration']:g} s at {1 / c['dt']:g} Hz, seed {payload['seed']}, "
-            f"observers in {payload['dtype']}, samples {'interpolated' if c['hold'] == 'linear' else 'held'}"
+    text = [f"nlio-{key}: {n_runs} runs x {c['duration']:g} s at {1 / c['dt']:g} Hz, seed {c['seed']}, "
+            f"observers in {c['dtype']}, samples {'interpolated' if c['hold'] == 'linear' else 'held'}"
             + ("" if payload.get("complete") else "  [INCOMPLETE: partial results]")]
     for metric in ("mae", "rmse"):
         label = paper["table"].get(metric)
@@ -467,88 +447,90 @@ def _steady_start(cfg: Config) -> float:
     return float(dict((w[0], w[1]) for w in cfg.windows).get("steady", 0.0))
 
 
-def reproduce(name: str, runs: int = 100, seed: int = 0, chunk: int = 100, json_path: Optional[str] = None,
-              plot_path: Optional[str] = None, quiet: bool = False, dtype=None, **overrides) -> dict:
-    """Run every observer compared in experiment ``name`` ("nlio-case1" ... "nlio-case4", "nlio-simb") over
-    ``runs`` Monte Carlo runs, print tables laid out like the paper's with its numbers beside ours, write JSON
-    (atomically, after every observer) and, with ``plot_path``, the averaged error curves. ``overrides`` replace
-    Config fields (e.g. hold="zoh", q_scale=10). Returns the JSON payload. Enables float64."""
-    jax.config.update("jax_enable_x64", True)
-    from .. import montecarlo
-    from ..report import environment
+class NLIOStudy(base.Study):
+    """One experiment of Section 5 (``"nlio-case1"`` ... ``"nlio-case4"``, ``"nlio-simb"``): every observer the
+    paper compares, on the case's scenario; ``jaxatt tune`` tunes the NLIO-FG (Kp, kv, K1, K2) of Cases 1-3."""
 
-    if runs < 1:
-        raise ValueError(f"runs must be >= 1, got {runs}")
-    cfg = config(name, **overrides)
-    key = cfg.case
-    paper = PAPER[key]
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.dtype(jnp.float64)
-    scn = scenario(cfg)
-    n_steps = int(round(cfg.duration / cfg.dt))
-    trace_every = 10 if plot_path else 100  # averaged curves every 0.1 s (figures) or 1 s (JSON only)
-    while trace_every > 1 and n_steps < trace_every:
-        trace_every //= 10
-    cfg_json = {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg._asdict().items()}
-    payload = {"experiment": f"nlio-{key}", "paper": "sensors2020-interconnected-observer-gyro-bias, Section 5",
-               "config": cfg_json, "runs": runs, "seed": seed, "chunk": chunk, "dtype": str(dtype),
-               "environment": environment(), "readings": READINGS, "published": paper,
-               "published_rmse_reordered": paper_values(key, "rmse"), "observers": {},
-               "complete": False}
-    log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
-    t_all = time.perf_counter()
-    curves, curves_json = {}, {}
-    complete = True
-    for obs_name in cfg.observers:
-        obs = observer(cfg, obs_name)
-        p = params(cfg, obs_name, dtype=jnp.float64)
+    loss_kind = "euler_sq"
+    entry = "nlio-fg"
+    tuned = "NLIO-FG"
+
+    def __init__(self, name: str):
+        self.name = name
+        self.case = name[5:]
+        self.paper = ("sensors2020 (interconnected observer with gyro-bias estimation), Section 5, "
+                      + {"simb": "Simulation B"}.get(self.case, f"Simulation A, Case {self.case[4:]}"))
+
+    def config(self, **overrides):
+        dur = float(overrides.get("duration", DURATION))
+        if dur != DURATION and "windows" not in overrides:  # reduced horizons: the windows scale with it
+            f = dur / DURATION
+            overrides["windows"] = tuple((n, a * f, b * f) for n, a, b in CASES[self.case].windows)
+        return config(self.name, **overrides)
+
+    def scenario(self, cfg):
+        return scenario(cfg)
+
+    def observers(self, cfg, dtype=None):
+        return {n: (observer(cfg, n), params(cfg, n, dtype=jnp.float64)) for n in cfg.observers}
+
+    def errors(self, truth, out):
+        return errors(truth, out)
+
+    def windows(self, cfg):
+        return tuple(cfg.windows)
+
+    def window_start(self, cfg):
+        return _steady_start(cfg)
+
+    def init_params(self, cfg):
+        return initial_attitude_hook(tuple(cfg.init_angles)) if cfg.random_init else None
+
+    def loss_windows(self, cfg):
+        ss = _steady_start(cfg)
+        ts, te = dict((w[0], (w[1], w[2])) for w in cfg.windows).get("transient", (0.0, ss))
+        return {"steady": (ss, math.inf), "transient": (ts, te)}
+
+    def published(self, cfg):
+        return {"table": PAPER[cfg.case].get("table", {}),
+                **{m: paper_values(cfg.case, m) for m in ("mae", "rmse") if m in PAPER[cfg.case]}}
+
+    def comparable(self, cfg):
+        ref = CASES[cfg.case]
+        diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
+                if k != "observers" and getattr(cfg, k) != getattr(ref, k)]
+        return "; ".join(diff) if diff else None
+
+    def notes(self, cfg):
+        return list(READINGS)
+
+    def check_params(self, p):
         check_params(p)
-        t0 = time.perf_counter()
 
-        def on_chunk(res, obs_name=obs_name, t0=t0):
-            log(f"  {obs_name}: {len(res.run_indices)}/{runs} runs, {time.perf_counter() - t0:.1f} s")
+    def trace(self, cfg, plotting):
+        n_steps = int(round(cfg.duration / cfg.dt))
+        every = 10 if plotting else 100  # averaged curves every 0.1 s (figures) or 1 s (JSON only)
+        while every > 1 and n_steps < every:
+            every //= 10
+        return every, trace
 
-        res = montecarlo.monte_carlo(scn, obs, p, runs=runs, duration=cfg.duration, dt=cfg.dt, seed=seed,
-                                     errors_fn=errors, window_start=_steady_start(cfg),
-                                     hold=cfg.hold, chunk=chunk, trace_every=trace_every, trace_fn=trace, dtype=dtype,
-                                     windows=cfg.windows,
-                                     init_params=initial_attitude_hook(tuple(cfg.init_angles))
-                                     if cfg.random_init else None,
-                                     on_chunk=on_chunk)
-        wall = time.perf_counter() - t0
-        complete &= res.complete
-        curves[obs_name] = _curves(res.traces)
-        curves_json[obs_name] = _curves(res.traces, max_points=1000)
-        entry = {
-            "runs_done": len(res.run_indices),
-            "mae": table_values(res.per_run, "mae"), "rmse": table_values(res.per_run, "rmse"),
-            "metrics": {k: _stats(v) for k, v in res.per_run.items()},
-            "timing": {"wall_s": wall, "run_steps_per_s": len(res.run_indices) * n_steps / wall,
-                       "note": "compile included"},
-        }
+    def entry_extra(self, cfg, per_run):
+        e = {"mae": table_values(per_run, "mae"), "rmse": table_values(per_run, "rmse")}
         if len(cfg.windows) > 2:
-            entry["extra_windows"] = {w: {"mae": table_values(res.per_run, "mae", (w,)),
-                                          "rmse": table_values(res.per_run, "rmse", (w,))}
-                                      for w, _, _ in cfg.windows[2:]}
-        payload["observers"][obs_name] = entry
-        payload["curves"] = curves_json
-        payload["timing"] = {"wall_s": time.perf_counter() - t_all}
-        _write_json(json_path, payload)
-        log(f"  {obs_name}: done in {wall:.1f} s ({entry['timing']['run_steps_per_s']:.3g} run-steps/s)")
-        if not res.complete:
-            break
-    payload["complete"] = complete and len(payload["observers"]) == len(cfg.observers)
-    payload["timing"] = {"wall_s": time.perf_counter() - t_all}
+            e["extra_windows"] = {w: {"mae": table_values(per_run, "mae", (w,)),
+                                      "rmse": table_values(per_run, "rmse", (w,))} for w, _, _ in cfg.windows[2:]}
+        return e
 
-    report = format_report(payload)
-    print(report)
-    print("readings: " + "; ".join(READINGS[:6]))
-    payload["tables_text"] = report
-    if plot_path:
-        n_runs = min((e["runs_done"] for e in payload["observers"].values()), default=0)
-        plot_curves(curves, plot_path, title=f"nlio-{key}: errors averaged over {n_runs} runs", cfg=cfg)
-        payload["plot"] = plot_path
-        print(f"plot written to {plot_path}")
-    _write_json(json_path, payload)
-    if json_path:
-        print(f"results written to {json_path}")
-    return payload
+    def add_results(self, cfg, payload, results):
+        payload["curves"] = {n: _curves(r.traces, max_points=1000) for n, r in results.items()
+                             if r.traces is not None}
+
+    def format_report(self, payload):
+        return format_report(payload)
+
+    def plot(self, cfg, payload, results, path, dtype=None):
+        curves = {n: _curves(r.traces) for n, r in results.items() if r.traces is not None}
+        plot_curves(curves, path, title=f"{self.name}: errors averaged over {payload['runs_done']} runs", cfg=cfg)
+
+
+STUDIES = {name: NLIOStudy(name) for name in EXPERIMENTS}

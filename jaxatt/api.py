@@ -1,0 +1,399 @@
+"""The front door: a registered observer or your own ``Observer(init, step)`` on your own arrays, on BROAD trials,
+tuned on them, or in Monte Carlo on a simulated AHRS scenario.
+
+    import jaxatt
+    est = jaxatt.filter("robust", gyr, acc, mag, dt=1 / 285.714)        # numpy (T, 3) in, est.quat (T, 4) out
+    est = jaxatt.filter("mekf", gyr, acc, mag, dt=0.01, frame="NED")    # any registered observer
+    est = jaxatt.filter(my_observer, gyr, acc, mag, dt=0.01, params=my_params)
+    trials = jaxatt.data.broad.load("path/to/broad", trials=["01", "02"])
+    score = jaxatt.broad_score("robust", None, trials)   # .trials[name].total_rmse_deg, .groups["disturbed"]...
+    fit = jaxatt.fit(my_observer, my_params, trials, steps=20)            # .params (same type), .history
+
+Conventions: inputs in the sensor (body) frame, gyro rad/s, accelerometer m/s^2 (specific force, "up" at rest),
+magnetometer in any unit; quaternions (w, x, y, z) mapping sensor to the navigation frame (``frame``: ENU, NED or
+NWU, :mod:`jaxatt.frames`). T samples give T estimates, estimate 0 being the observer's start from the first
+sample (:mod:`jaxatt.engine`). Arithmetic: float64 for float64 input when JAX's x64 is on (jaxatt never switches
+it: ``jax.config.update("jax_enable_x64", True)``); otherwise float32, with a warning for float64 input.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any, Dict, NamedTuple, Optional, Sequence, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import engine, frames
+from .observers import registry
+from .types import ImuSample, Observer
+
+__all__ = ["filter", "Estimate", "broad_score", "BroadScore", "TrialScore", "GroupScore", "monte_carlo",
+           "ahrs_scenario", "ahrs_errors", "resolve_observer", "compute_dtype"]
+
+ObserverLike = Union[str, Observer, registry.Entry]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Boundary helpers
+# ------------------------------------------------------------------------------------------------------------
+def compute_dtype(*arrays, dtype=None, what: str = "input"):
+    """The arithmetic for arrays of the given dtypes: ``dtype`` if given; float64 when any input is float64 and x64
+    is on; float32 otherwise (with a warning when float64 input is computed in float32)."""
+    x64 = bool(jax.config.jax_enable_x64)
+    if dtype is not None:
+        dt = np.dtype(dtype)
+        if dt not in (np.float32, np.float64):
+            raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
+        if dt == np.float64 and not x64:
+            raise ValueError("dtype float64 needs JAX's x64 mode: call jax.config.update('jax_enable_x64', True) first")
+        return dt
+    wide = any(np.asarray(a).dtype == np.float64 for a in arrays if a is not None)
+    if wide and not x64:
+        warnings.warn(f"float64 {what} is computed in float32 because JAX's x64 mode is off; call "
+                      "jax.config.update('jax_enable_x64', True) for float64 results, or pass float32 arrays",
+                      stacklevel=3)
+    return np.dtype(np.float64) if (wide and x64) else np.dtype(np.float32)
+
+
+def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndarray]:
+    if v is None:
+        if required:
+            raise ValueError(f"{name} is required (an array of shape (T, 3))")
+        return None
+    try:
+        a = np.asarray(v)
+    except Exception as e:  # noqa: BLE001 - anything numpy cannot read
+        raise ValueError(f"{name} must be an array of shape (T, 3), got {type(v).__name__}: {e}") from None
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{name} must be numeric, got dtype {a.dtype}")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (T, 3), got {a.shape}")
+    if n is not None and a.shape[0] != n:
+        raise ValueError(f"{name} has {a.shape[0]} samples, gyr has {n}")
+    if np.any(np.isinf(a)):
+        raise ValueError(f"{name} contains +-inf (mark a missing reading with NaN)")
+    return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
+
+
+def _times(t, dt, n: int):
+    """(t (T,), per_step) from timestamps or a constant dt; ValueError naming the argument."""
+    if t is not None and dt is not None:
+        raise ValueError("give either t (timestamps, s) or dt (constant step, s), not both")
+    if t is None and dt is None:
+        raise ValueError("dt (the sample period, s) or t (timestamps, s) is required")
+    if t is not None:
+        t = np.asarray(t, np.float64)
+        if t.shape != (n,):
+            raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
+        d = np.diff(t)
+        if not np.all(np.isfinite(t)) or np.any(d <= 0):
+            raise ValueError("t must be finite and strictly increasing (s)")
+        return t, True
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
+    return np.arange(n, dtype=np.float64) * dt, False
+
+
+def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
+    """(observer, params, entry or None, name) for a registered name / :class:`~jaxatt.observers.registry.Entry`
+    (set up for recorded data, params None -> its shipped or default gains) or a user's :class:`Observer`
+    (``params`` required)."""
+    if isinstance(observer, (str, registry.Entry)):
+        entry = registry.get(observer)
+        obs = registry.recorded_observer(entry) if recorded else entry.make()
+        if params is None:
+            params = entry.params(dtype=dtype)
+        elif isinstance(params, str):
+            from .fit import gainsfile
+
+            params = gainsfile.read_params(params, entry, dtype=dtype)
+        if entry.check is not None:
+            _check_concrete(entry.check, params)
+        return obs, params, entry, entry.name
+    if isinstance(observer, Observer):
+        if params is None:
+            raise ValueError(f"params are required for your own observer {observer.name!r} "
+                             "(registered observers have defaults)")
+        return observer, params, None, observer.name
+    if hasattr(observer, "init") and hasattr(observer, "step"):
+        return resolve_observer(Observer(observer.init, observer.step, getattr(observer, "name", "observer"),
+                                         getattr(observer, "output", None)), params, dtype=dtype)
+    raise ValueError(f"observer must be a registered name ({', '.join(registry.names())}) or an "
+                     f"Observer(init, step), got {type(observer).__name__}")
+
+
+def _check_concrete(check, params):
+    try:
+        leaves = jax.tree_util.tree_leaves(params)
+        concrete = all(not isinstance(x, jax.core.Tracer) for x in leaves)
+    except Exception:  # noqa: BLE001
+        concrete = False
+    if concrete:
+        check(params)
+
+
+def _check_finite_params(params, name: str):
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        a = np.asarray(leaf)
+        if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+            raise ValueError(f"params of {name}: {jax.tree_util.keystr(path)} is not finite ({a})")
+
+
+# ------------------------------------------------------------------------------------------------------------
+# filter
+# ------------------------------------------------------------------------------------------------------------
+class Estimate(NamedTuple):
+    """The estimates of :func:`filter` (numpy), one per sample.
+
+    Fields:
+        t: (T,) s.
+        quat: (T, 4) (w, x, y, z), sensor to ``frame``.
+        frame: the navigation frame of ``quat`` ("ENU", "NED", "NWU"; as given for your own observer).
+        outputs: every field of the observer's output, (T, ...) numpy arrays (bias, diagnostics, ...), in the
+            observer's own frame; row 0 is the start (``init``).
+        observer: its name.
+        params: the params used.
+    """
+
+    t: np.ndarray
+    quat: np.ndarray
+    frame: str
+    outputs: Dict[str, np.ndarray]
+    observer: str
+    params: Any
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(T, 3, 3) rotation matrices of ``quat`` (v_frame = R v_sensor)."""
+        from . import so3
+
+        return np.asarray(so3.quat_to_matrix(jnp.asarray(self.quat)))
+
+
+def _pick_all(t, truth, out):
+    return out
+
+
+def _as_dict(out) -> Dict[str, Any]:
+    if hasattr(out, "_asdict"):
+        return {k: v for k, v in out._asdict().items() if v is not None}
+    if isinstance(out, dict):
+        return {k: v for k, v in out.items() if v is not None}
+    return {"out": out}
+
+
+def filter(observer: ObserverLike, gyr, acc=None, mag=None, *, dt=None, t=None, params=None, frame: str = "ENU",
+           hold: Optional[str] = None, dtype=None) -> Estimate:
+    """Run an observer over one recording; T estimates for T samples (numpy).
+
+    Args:
+        observer: a registered name (:func:`jaxatt.observers.registry.names`, e.g. "robust", "mekf", "mahony"), set
+            up from the first samples (start, references), or your own :class:`jaxatt.Observer`: it gets
+            :class:`jaxatt.ImuSample` (t, gyr, acc, mag) in the sensor frame in ``init(params, first)`` and
+            ``step(params, state, sample, dt)``, and its output carries the estimate as ``q`` (w, x, y, z) or
+            ``r`` (3x3).
+        gyr, acc, mag: (T, 3) sensor frame; rad/s, m/s^2 (specific force), any field unit. NaN marks a missing
+            reading; acc / mag may be None when the observer does not need them.
+        dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing.
+        params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
+            read); required for your own observer.
+        frame: navigation frame of the returned quaternions ("ENU", "NED", "NWU"): registered observers are
+            converted to it; for your own observer it only labels the estimate (no conversion).
+        hold: the input of each step (:data:`jaxatt.types.HOLDS`; default the observer's, "next" for your own:
+            sample k updates the estimate to t_k, as ahrs and VQF do).
+        dtype: "float32" / "float64" (default: from the input, see the module docstring).
+    Raises ValueError (one line naming the argument) on bad input, FloatingPointError when an estimate is not
+    finite (the first row and time are named).
+    """
+    frame = frames.check_frame(frame)
+    gyr_a = _vectors("gyr", gyr, None, True)
+    n = gyr_a.shape[0]
+    if n < 2:
+        raise ValueError(f"gyr must have at least 2 samples, got {n}")
+    acc_a = _vectors("acc", acc, n, False)
+    mag_a = _vectors("mag", mag, n, False)
+    ts, per_step = _times(t, dt, n)
+    dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
+    obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
+    if entry is not None:
+        missing = [f for f in entry.needs if {"acc": acc_a, "mag": mag_a}[f] is None]
+        if missing:
+            raise ValueError(f"observer {name!r} needs {' and '.join(missing)} (arrays of shape (T, 3))")
+    _check_finite_params(p, name)
+    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    cast = lambda a: None if a is None else jnp.asarray(a, dt_)  # noqa: E731
+    samples = ImuSample(jnp.asarray(ts, dt_), cast(gyr_a), cast(acc_a), cast(mag_a))
+    steps = np.diff(ts)
+    item = {"samples": jax.tree_util.tree_map(lambda a: a[None], samples),
+            "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
+            "truth": None}
+    fn = engine.compiled(obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold,
+                         obs_dtype=dt_)
+    out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
+    q = np.asarray(engine.estimate_q(out))
+    bad = ~np.all(np.isfinite(q), axis=-1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise FloatingPointError(f"{name}: the estimate is not finite from sample {k} (t = {ts[k]:.6g} s) on; check "
+                                 "the inputs and gains")
+    if entry is not None and entry.frame != frame:
+        q = frames.change_frame(q, frame, entry.frame)
+    outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
+    return Estimate(ts, q, frame, outputs, name, p)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# BROAD
+# ------------------------------------------------------------------------------------------------------------
+class TrialScore(NamedTuple):
+    """BROAD metric of one trial: RMSE (deg) of the total, heading and inclination errors over its scored samples."""
+
+    total_rmse_deg: float
+    heading_rmse_deg: float
+    inclination_rmse_deg: float
+    group: str
+
+
+class GroupScore(NamedTuple):
+    """Means over the trials of a group of the per-trial RMSEs (deg), and how many trials."""
+
+    total_rmse_deg: float
+    heading_rmse_deg: float
+    inclination_rmse_deg: float
+    n_trials: int
+
+
+class BroadScore(NamedTuple):
+    """:func:`broad_score`'s result: ``trials[name]`` (:class:`TrialScore`), ``groups[g]`` (:class:`GroupScore`,
+    g in "undisturbed", "disturbed", "all"), the observer's name and the wall time (s)."""
+
+    trials: Dict[str, TrialScore]
+    groups: Dict[str, GroupScore]
+    observer: str
+    wall_s: float
+
+    def to_dict(self) -> dict:
+        return {"observer": self.observer, "wall_s": self.wall_s,
+                "trials": {n: s._asdict() for n, s in self.trials.items()},
+                "groups": {g: s._asdict() for g, s in self.groups.items()}}
+
+
+def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
+    """Mean per-trial metrics per group ("undisturbed", "disturbed") and over all trials."""
+    from .data.broad import GROUPS, METRICS
+
+    out = {}
+    for g in GROUPS + ("all",):
+        rows = [s for s in per_trial.values() if g == "all" or s.group == g]
+        if rows:
+            out[g] = GroupScore(*(float(np.mean([getattr(r, m) for r in rows])) for m in METRICS), len(rows))
+    return out
+
+
+def broad_score(observer: ObserverLike, params, trials: Sequence, *, hold: Optional[str] = None,
+                dtype=None) -> BroadScore:
+    """The BROAD metric of an observer on trials (all at once: padded, vmapped, one scan).
+
+    Args:
+        observer: a registered name (set up from each trial's first samples) or your own Observer (its estimate
+            must be sensor-to-ENU, BROAD's frame).
+        params: gains; None for a registered observer's shipped or default gains; a gains-file path is read.
+        trials: :class:`jaxatt.data.broad.Trial` s (:func:`jaxatt.data.broad.load`).
+        hold: as in :func:`filter`.
+        dtype: the filter's arithmetic ("float32" is the fast choice; default from the data).
+    Returns :class:`BroadScore`. Estimate k is scored against ``opt_quat[k]`` over the movement samples with
+    finite truth (BROAD's metric, no offset fitted).
+    """
+    from .data import broad as B
+
+    trials = list(trials)
+    if not trials:
+        raise ValueError("trials is empty (load them with jaxatt.data.broad.load)")
+    if not all(isinstance(tr, B.Trial) for tr in trials):
+        raise ValueError("trials must be jaxatt.data.broad.Trial objects (jaxatt.data.broad.load)")
+    dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
+    obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
+    _check_finite_params(p, name)
+    if entry is not None and entry.frame != "ENU":
+        raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
+    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    t0 = time.perf_counter()
+    res = B.score(obs, p, trials, hold=hold, dtype=dt_)
+    wall = time.perf_counter() - t0
+    per = {}
+    for tr in trials:
+        m = res[tr.name]
+        if not all(np.isfinite(v) for v in m.values()):
+            raise FloatingPointError(f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); the estimate "
+                                     "diverged (check the gains)")
+        per[tr.name] = TrialScore(m["total_rmse_deg"], m["heading_rmse_deg"], m["inclination_rmse_deg"],
+                                  tr.group or B.group_of(tr.name))
+    return BroadScore(per, group_means(per), name, wall)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Monte Carlo on a simulated AHRS scenario
+# ------------------------------------------------------------------------------------------------------------
+def ahrs_scenario(*, gyro_noise_std: float = 1e-3, acc_noise_std: float = 0.05, mag_noise_std: float = 0.3,
+                  gyro_bias=(0.01, -0.01, 0.005), mag_ref_enu=(0.0, 20.0, -40.0), rate_scale: float = 1.0,
+                  mix_prob: float = 0.0):
+    """A simulated IMU in ENU for observers made for recorded data: gyro (rad/s, constant bias + white noise per
+    sample), accelerometer measuring the specific force (+9.81 m/s^2 "up" at rest, white noise m/s^2),
+    magnetometer (uT; default 44.7 uT field pointing north and down, white noise uT), the rotation rates of the
+    NLIO paper's Section 5 (``rate_scale`` times them), true start = identity (sensor axes = ENU). North is the
+    field's horizontal direction, as in every recorded-data set-up (TRIAD)."""
+    from .sim import ahrs
+
+    return ahrs.AhrsScenario.make(rates=ahrs.nlio_rates(rate_scale), acc_ref_nav=(0.0, 0.0, 9.81),
+                                  mag_ref_nav=mag_ref_enu, gyro_bias=gyro_bias, gyro_noise_std=gyro_noise_std,
+                                  acc_noise_std=acc_noise_std, mag_noise_std=mag_noise_std, mix_prob=mix_prob)
+
+
+def ahrs_errors(truth, out):
+    """Errors of an AHRS estimate against the simulated truth: roll, pitch, yaw (deg, ZYX, wrapped) and, when the
+    output has ``bias``, the gyro-bias error (deg/s)."""
+    from . import so3
+
+    r = engine.estimate_r(out)
+    roll, pitch, yaw = (jnp.rad2deg(e) for e in so3.euler_error_zyx(truth.r.astype(r.dtype), r))
+    e = {"roll": roll, "pitch": pitch, "yaw": yaw}
+    b = getattr(out, "bias", None) if not isinstance(out, dict) else out.get("bias")
+    if b is not None and jnp.shape(b) == (3,):
+        e["bias"] = jnp.rad2deg(truth.gyro_bias.astype(r.dtype) - b)
+    return e
+
+
+def monte_carlo(observer: ObserverLike, params=None, *, runs: int = 100, duration: float = 60.0, dt: float = 0.01,
+                seed: int = 0, scenario=None, window_start: Optional[float] = None, hold: Optional[str] = None,
+                dtype=None, chunk: int = 250, trace_every: int = 0, progress=None):
+    """Monte Carlo of an observer (registered or your own) on a simulated AHRS (:func:`ahrs_scenario` by default,
+    ENU): ``runs`` runs of ``duration`` s at 1/``dt`` Hz, run k from key fold_in(PRNGKey(seed), k), metrics reduced
+    as the scan runs (:func:`jaxatt.montecarlo.monte_carlo`): per run the mean / max / final angle error (deg)
+    over t >= ``window_start`` (default: the last third) and the std of every error of :func:`ahrs_errors`.
+    Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
+    are not finite."""
+    from . import montecarlo as mc
+
+    dt_ = compute_dtype(dtype=dtype) if dtype is not None else np.dtype(jnp.result_type(float))
+    obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
+    _check_finite_params(p, name)
+    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    scn = scenario if scenario is not None else ahrs_scenario()
+    ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
+    if not 0.0 <= ws < duration:
+        raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")
+    res = mc.monte_carlo(scn, obs, p, runs=runs, duration=duration, dt=dt, seed=seed, errors_fn=ahrs_errors,
+                         window_start=ws, hold=hold, chunk=chunk, trace_every=trace_every, dtype=dt_,
+                         progress=progress)
+    for k, v in res.per_run.items():
+        bad = ~np.isfinite(np.asarray(v, float))
+        if bad.any():
+            run = int(res.run_indices[np.argmax(bad.reshape(len(bad), -1).any(axis=1))])
+            raise FloatingPointError(f"{name}: metric {k} is not finite in run {run} (seed {seed})")
+    return res

@@ -1,0 +1,452 @@
+"""The scan engine: the one loop that advances any observer over a source of samples into a reducer.
+
+Every capability of jaxatt is a use of :func:`batch_fn` (Monte Carlo metrics, tuning losses, BROAD scores and
+losses, filter outputs on a user's log):
+
+* a **source** gives, per run, the first sample and then one sample per step: :class:`Simulated` (truth and
+  sensors of a scenario, fused in the scan, noise from the run's key) or :class:`Recorded` (arrays of a log or
+  of a padded batch of trials, with optional truth arrays);
+* the **observer** (:class:`jaxatt.types.Observer`) is stepped with the input that ``hold`` chooses;
+* a **reducer** (:class:`Reducer`) accumulates what is wanted while the scan runs: metrics, a differentiable
+  loss, decimated records, or every output.
+
+Alignment (the same on every path): T samples at t_0 ... t_{T-1} give T estimates. Estimate 0 is ``init``'s (its
+output: ``observer.output(params, state)``, see :func:`initial_output`); estimate k >= 1 is the output of the
+step over [t_{k-1}, t_k], whose input is sample k-1 (``hold="zoh"``), both samples (``"linear"``, an
+:class:`jaxatt.types.Interval`) or sample k (``"next"``). A reducer sees estimate 0 in ``init`` and estimates
+1 ... T-1 in ``update``; records (decimated every ``every`` estimates) start at estimate 0.
+
+Layout: runs are vmapped inside each time step with the batch on the LAST axis of every per-run array (vectors
+are (3, B): each component a contiguous row, which XLA vectorises about twice as well as (B, 3)); results come
+back runs-first. The steps are scanned in blocks of :data:`BLOCK` (the noise block of the simulator); with
+``checkpoint`` the scan is split into segments under ``jax.checkpoint`` (reverse mode stores one carry per
+segment and recomputes a segment in the backward pass: memory ~ T / c + c instead of T), and ``step_remat``
+rematerialises each step inside a segment as well.
+
+Precision: ``init`` runs on the params in the observer's dtype and the first sample in the source's precision
+(float64 data or simulation: a float32 filter starts from the state a float64 start computes, as BROAD's
+``setState``); the state is then cast to the observer's dtype, and every step runs in that dtype.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, Callable, NamedTuple, Optional, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import so3
+from .sim import imu
+from .types import HOLDS, Interval, Observer
+
+__all__ = ["BLOCK", "Reducer", "Simulated", "Recorded", "Result", "batch_fn", "initial_output", "segment_length",
+           "cast_floats", "check_hold", "INIT_PARAMS_BLOCK", "compiled", "records_of", "estimate_r",
+           "estimate_q", "Static"]
+
+#: Steps per block (the simulator's noise block): the unit of the scan, of progress reports and of checkpointing.
+BLOCK = imu.NOISE_BLOCK
+#: fold_in index of a simulated run's key for its ``init_params`` draw (noise streams use 0 ... and
+#: ``imu.INIT_BLOCK``).
+INIT_PARAMS_BLOCK = 2**31 - 2
+
+
+def check_hold(hold: str) -> str:
+    if hold not in HOLDS:
+        raise ValueError(f"hold must be one of {', '.join(HOLDS)}, got {hold!r}")
+    return hold
+
+
+def cast_floats(tree, dtype):
+    """``tree`` with every floating leaf cast to ``dtype`` (others untouched; None leaves stay None)."""
+    return jax.tree_util.tree_map(
+        lambda a: a.astype(dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Reducers
+# ------------------------------------------------------------------------------------------------------------
+class Reducer(NamedTuple):
+    """What the scan keeps, per run (all three functions see one run; the engine vmaps them).
+
+    * ``init(t0, truth0, out0) -> (acc, record0)``: accumulator from estimate 0 (``record0`` None or a pytree).
+    * ``update(acc, t, truth, out) -> (acc, record)``: estimate k at time t (s) against the source's truth there.
+    * ``finish(acc) -> result``: per-run result (any pytree).
+    * ``every``: keep the records of estimates 0, every, 2 every, ... (0: no records). Must divide the segment
+      length (:data:`BLOCK` unless checkpointed otherwise).
+
+    Hashable (a NamedTuple of module-level functions or cached closures), so jitted runners are cached on it.
+    """
+
+    init: Callable
+    update: Callable
+    finish: Callable
+    every: int = 0
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Sources
+# ------------------------------------------------------------------------------------------------------------
+class Simulated(NamedTuple):
+    """A simulated scenario: truth and sensors computed in the scan (nothing per step is stored).
+
+    The scenario (the replicated ``world`` argument of the batch function) provides ``n_channels``,
+    ``r0``, ``truth_at(r, t)``, ``propagate(r, t, dt)`` and ``sample(truth, noise, dt)`` (see
+    :class:`jaxatt.sim.imu.ImuScenario`). Per run the batch item is a PRNG key: run k of seed s uses
+    ``fold_in(PRNGKey(s), k)`` (:func:`jaxatt.montecarlo.run_keys`), so a run does not depend on its batch.
+
+    Fields: n_steps (steps, T - 1), dt (s), sim_dtype (truth and sensors; float64 when available),
+    init_params (optional ``fn(params, key) -> params`` for ``init`` only, e.g. a random initial estimate, drawn
+    from ``fold_in(key, INIT_PARAMS_BLOCK)``; hashable).
+    """
+
+    n_steps: int
+    dt: float
+    sim_dtype: Any
+    init_params: Optional[Callable] = None
+
+    def prepare(self, world):
+        return cast_floats(world, self.sim_dtype)
+
+    def first(self, scn, key):
+        truth0 = scn.truth_at(scn.r0, jnp.zeros((), self.sim_dtype))
+        s0 = scn.sample(truth0, imu.initial_noise(key, self.sim_dtype, scn.n_channels), self.dt)
+        return scn.r0, s0, truth0, truth0.t
+
+    def params_for_init(self, params, key):
+        if self.init_params is None:
+            return params
+        return self.init_params(params, jax.random.fold_in(key, INIT_PARAMS_BLOCK))
+
+    def block(self, scn, key, block_index, offset, length):
+        nb = imu.noise_block(key, block_index, self.sim_dtype, scn.n_channels)
+        return nb if length == BLOCK else jax.lax.dynamic_slice_in_dim(nb, offset, length, 0)
+
+    def advance(self, scn, r, k, noise):
+        """(src_state, sample, truth, t, dt) of step k (from t_k to t_{k+1})."""
+        t_k = k.astype(self.sim_dtype) * self.dt
+        t_next = (k + 1).astype(self.sim_dtype) * self.dt
+        r_next = scn.propagate(r, t_k, self.dt)
+        truth = scn.truth_at(r_next, t_next)
+        return r_next, scn.sample(truth, noise, self.dt), truth, t_next, self.dt
+
+
+class Recorded(NamedTuple):
+    """Recorded arrays: one log or a padded batch of trials (the batch item, a dict of per-run arrays):
+
+    * ``samples``: a sample pytree (:class:`jaxatt.types.ImuSample` or ``VectorSample``) of (T, ...) arrays;
+    * ``dt``: () s, the constant step of the run, or (T,) with dt[k] = t_k - t_{k-1} (dt[0] unused);
+    * ``truth``: optional pytree of (T, ...) arrays handed to the reducer with each estimate (e.g. the optical
+      quaternion, the movement flag and the padding mask of a BROAD trial), or None.
+
+    Fields: n_steps (T - 1), per_step_dt (whether ``dt`` is (T,)).
+    """
+
+    n_steps: int
+    per_step_dt: bool = False
+
+    def prepare(self, world):
+        return world
+
+    def first(self, world, item):
+        pick0 = lambda a: a[0]  # noqa: E731
+        s0 = jax.tree_util.tree_map(pick0, item["samples"])
+        truth0 = jax.tree_util.tree_map(pick0, item["truth"]) if item.get("truth") is not None else None
+        return None, s0, truth0, s0.t
+
+    def params_for_init(self, params, item):
+        return params
+
+    def block(self, world, item, block_index, offset, length):
+        start = 1 + block_index * BLOCK + offset
+        take = lambda a: jax.lax.dynamic_slice_in_dim(a, start, length, 0)  # noqa: E731
+        xs = {"samples": jax.tree_util.tree_map(take, item["samples"])}
+        if item.get("truth") is not None:
+            xs["truth"] = jax.tree_util.tree_map(take, item["truth"])
+        xs["dt"] = take(item["dt"]) if self.per_step_dt else jnp.broadcast_to(item["dt"], (length,))
+        return xs
+
+    def advance(self, world, src_state, k, x):
+        return src_state, x["samples"], x.get("truth"), x["samples"].t, x["dt"]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Reading an output: the estimate as a rotation matrix or a quaternion
+# ------------------------------------------------------------------------------------------------------------
+def _field(out, name):
+    return out.get(name) if isinstance(out, dict) else getattr(out, name, None)
+
+
+def estimate_r(out):
+    """The sensor-to-navigation rotation (..., 3, 3) of an observer output: ``out.r``, else from ``out.q``."""
+    r = _field(out, "r")
+    if r is not None:
+        return r
+    q = _field(out, "q")
+    if q is None:
+        raise ValueError("the observer's output has neither a field r (3x3) nor q (w, x, y, z)")
+    return so3.quat_to_matrix(q)
+
+
+def estimate_q(out):
+    """The sensor-to-navigation quaternion (..., 4), (w, x, y, z), of an observer output: ``out.q``, else from
+    ``out.r`` (w >= 0)."""
+    q = _field(out, "q")
+    if q is not None:
+        return q
+    r = _field(out, "r")
+    if r is None:
+        raise ValueError("the observer's output has neither a field q (w, x, y, z) nor r (3x3)")
+    return so3.quat_canonical(so3.matrix_to_quat(r))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Estimate 0
+# ------------------------------------------------------------------------------------------------------------
+def initial_output(observer: Observer, params, state, sample0, dt):
+    """The output of ``init``'s state, with the structure ``step`` returns.
+
+    ``observer.output(params, state)`` when the observer has one. Otherwise each field of the step's output is
+    taken from the state field of the same name and shape (``t``, ``q``, ``r``, ``bias``, ...; ``r`` from ``q`` or
+    ``q`` from ``r`` when the state has only one of them); fields the state does not hold are NaN (floats),
+    False (bools) or 0 - they are defined from estimate 1 on.
+    """
+    if observer.output is not None:
+        return observer.output(params, state)
+    shape = jax.eval_shape(lambda: observer.step(params, state, sample0, dt)[1])
+    have = state._asdict() if hasattr(state, "_asdict") else {}
+    if "r" not in have and hasattr(state, "q"):
+        have = dict(have, r=so3.quat_to_matrix(state.q))
+    if "q" not in have and hasattr(state, "r"):
+        have = dict(have, q=so3.quat_canonical(so3.matrix_to_quat(state.r)))
+
+    def fill(name, s):
+        v = have.get(name)
+        if v is not None and hasattr(v, "shape") and tuple(jnp.shape(v)) == tuple(s.shape):
+            return jnp.asarray(v, s.dtype)
+        if jnp.issubdtype(s.dtype, jnp.floating):
+            return jnp.full(s.shape, jnp.nan, s.dtype)
+        return jnp.zeros(s.shape, s.dtype)
+
+    if hasattr(shape, "_fields"):
+        return type(shape)(*(None if s is None else fill(n, s) for n, s in zip(shape._fields, shape)))
+    if isinstance(shape, dict):
+        return {n: fill(n, s) for n, s in shape.items()}
+    raise TypeError(f"{observer.name}: cannot build estimate 0 from the state: give the observer an "
+                    "output(params, state) function, or return a NamedTuple or dict from step")
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Segments
+# ------------------------------------------------------------------------------------------------------------
+def segment_length(n_steps: int, checkpoint: Union[str, int, bool, None] = "auto") -> int:
+    """Steps per checkpointed segment (0 = no checkpointing).
+
+    ``"auto"`` (or True): about sqrt(n_steps) rounded to a multiple of :data:`BLOCK`, at least one block (360,000
+    steps -> 1000: 360 stored carries and 1000 recomputed steps; 4,000,000 -> 2000). An int must divide BLOCK or
+    be a multiple of it (a segment shorter than a block regenerates the block's noise for each segment; meant for
+    short horizons). False / None / 0: no checkpointing (reverse mode stores every step: short horizons only).
+    """
+    if checkpoint is None or checkpoint is False or checkpoint == 0:
+        return 0
+    if checkpoint is True or checkpoint == "auto":
+        return BLOCK * max(1, int(round(math.sqrt(max(n_steps, 1)) / BLOCK)))
+    if isinstance(checkpoint, str):
+        raise ValueError(f"checkpoint must be 'auto', True/False/None or a number of steps, got {checkpoint!r}")
+    c = int(checkpoint)
+    if c < 1 or (BLOCK % c and c % BLOCK):
+        raise ValueError(f"checkpoint segment must divide {BLOCK} or be a multiple of it, got {checkpoint!r}")
+    return c
+
+
+class Result(NamedTuple):
+    """Per-run results (runs first): the reducer's ``finish``, the stacked records (runs, n_records, ...) or None,
+    and the final observer states (or None when not asked for)."""
+
+    summary: Any
+    records: Any
+    state: Any
+
+
+def _concat_records(parts):
+    parts = [p for p in parts if p is not None]
+    if not parts:
+        return None
+    if len(parts) == 1:
+        return parts[0]
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, 0), *parts)
+
+
+def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh", obs_dtype=None, segment: int = 0,
+             step_remat: bool = False, progress: Union[bool, str] = False, keep_state: bool = False):
+    """``fn(world, params, batch) -> Result``: the scan of ``observer`` over every run of ``batch``.
+
+    Args:
+        observer: the :class:`jaxatt.types.Observer`.
+        source: a :class:`Simulated` (``world`` = scenario, ``batch`` = (B, 2) keys) or :class:`Recorded`
+            (``world`` = None, ``batch`` = dict of (B, T, ...) arrays).
+        reducer: a :class:`Reducer`.
+        hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`).
+        obs_dtype: the observer's arithmetic (default: jax's default float).
+        segment: checkpointed segment length in steps (:func:`segment_length`; 0 = none).
+        step_remat: also rematerialise each step (with ``segment``).
+        progress: report each finished block with ``jax.debug.callback`` to :func:`jaxatt.progress.block_hook`
+            ("ordered" on one device, "unordered" on several, False: nothing compiled in).
+        keep_state: return the final observer states.
+
+    Not jitted (wrap it in ``jax.jit`` or :func:`jaxatt.sharding.shard_runs`); differentiable in ``params`` and
+    in the world's arrays.
+    """
+    check_hold(hold)
+    obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
+    n_steps = int(source.n_steps)
+    every = int(reducer.every)
+    c = segment if segment else BLOCK
+    if every and c % every:
+        raise ValueError(f"the record interval {every} must divide the segment length {c}")
+    remat = (lambda f: jax.checkpoint(f, prevent_cse=False)) if segment else (lambda f: f)
+
+    def fn(world, params, batch):
+        world = source.prepare(world)
+        p = cast_floats(params, obs_dtype)
+
+        def init_one(item):
+            src, s0, truth0, t0 = source.first(world, item)
+            p0 = cast_floats(source.params_for_init(p, item), obs_dtype)
+            st0 = cast_floats(observer.init(p0, s0), obs_dtype)
+            s0 = cast_floats(s0, obs_dtype)
+            out0 = initial_output(observer, p, st0, s0, jnp.ones((), obs_dtype))
+            acc0, rec0 = reducer.init(t0, truth0, out0)
+            return (src, s0, st0, acc0), rec0
+
+        def step_one(k, src, s_prev, st, acc, x):
+            src, s_next, truth, t_next, dt = source.advance(world, src, k, x)
+            s_next = cast_floats(s_next, obs_dtype)
+            u = s_prev if hold == "zoh" else (s_next if hold == "next" else Interval(s_prev, s_next))
+            st, out = observer.step(p, st, u, jnp.asarray(dt, obs_dtype))
+            acc, rec = reducer.update(acc, t_next, truth, out)
+            return src, s_next, st, acc, rec
+
+        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1), out_axes=-1)
+        if step_remat:
+            step_b = jax.checkpoint(step_b, prevent_cse=False)
+
+        def step(carry, x):
+            k = carry[0]
+            src, s, st, acc, rec = step_b(*carry, x)
+            return (k + 1, src, s, st, acc), rec
+
+        def run_steps(carry, block_index, offset, length):
+            """``length`` steps (rows offset ... offset + length - 1 of block ``block_index``)."""
+            xs = jax.vmap(lambda item: source.block(world, item, block_index, offset, length),
+                          out_axes=-1)(batch)  # (length, ..., B)
+            carry, rec = jax.lax.scan(step, carry, xs)
+            if progress:
+                jax.debug.callback(_report, block_index * BLOCK + offset + length, ordered=progress == "ordered")
+            if every:
+                rec = jax.tree_util.tree_map(lambda a: a[every - 1::every], rec)
+            else:
+                rec = None
+            return carry, rec
+
+        init_carry, rec0 = jax.vmap(init_one, out_axes=-1)(batch)
+        carry = (jnp.zeros((), jnp.int32),) + init_carry
+        parts = [jax.tree_util.tree_map(lambda a: a[None], rec0) if every else None]
+
+        def flat(rec):  # (n_seg, per_seg, ...) -> (n_seg * per_seg, ...)
+            return None if rec is None else jax.tree_util.tree_map(
+                lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), rec)
+
+        if c <= BLOCK:  # segments inside blocks (c divides BLOCK)
+            n_seg = n_steps // c
+
+            @remat
+            def seg(carry, s):
+                start = s * c
+                return run_steps(carry, start // BLOCK, start % BLOCK, c)
+
+            if n_seg:
+                carry, rec = jax.lax.scan(seg, carry, jnp.arange(n_seg))
+                parts.append(flat(rec))
+            pos = n_seg * c
+            if n_steps > pos:  # remainder < c, inside one block
+                carry, rec = remat(lambda cr: run_steps(cr, pos // BLOCK, pos % BLOCK, n_steps - pos))(carry)
+                parts.append(rec)
+        else:  # segments of m whole blocks
+            m = c // BLOCK
+            n_seg = n_steps // c
+
+            @remat
+            def seg(carry, s):
+                return jax.lax.scan(lambda cr, j: run_steps(cr, s * m + j, 0, BLOCK), carry, jnp.arange(m))
+
+            if n_seg:
+                carry, rec = jax.lax.scan(seg, carry, jnp.arange(n_seg))
+                parts.append(None if rec is None else jax.tree_util.tree_map(
+                    lambda a: a.reshape((a.shape[0] * a.shape[1] * a.shape[2],) + a.shape[3:]), rec))
+            pos = n_seg * c
+            q, r_ = divmod(n_steps - pos, BLOCK)
+            if q:
+                carry, rec = jax.lax.scan(remat(lambda cr, j: run_steps(cr, j, 0, BLOCK)), carry,
+                                          pos // BLOCK + jnp.arange(q))
+                parts.append(flat(rec))
+            if r_:
+                carry, rec = remat(lambda cr: run_steps(cr, pos // BLOCK + q, 0, r_))(carry)
+                parts.append(rec)
+        acc = carry[4]
+        summary = jax.vmap(reducer.finish, in_axes=-1, out_axes=0)(acc) if jax.tree_util.tree_leaves(acc) else \
+            reducer.finish(acc)
+        records = _concat_records(parts) if every else None
+        if records is not None:
+            records = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), records)  # (B, n_rec, ...)
+        state = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), carry[3]) if keep_state else None
+        return Result(summary, records, state)
+
+    return fn
+
+
+def _report(steps_done):
+    from . import progress as _progress
+
+    _progress.steps_hook(steps_done)
+
+
+class Static:
+    """A constant (e.g. a dict of partition specs) usable as a cache key: hashed and compared by identity, so
+    keep one module-level instance."""
+
+    def __init__(self, value):
+        self.value = value
+
+
+@functools.lru_cache(maxsize=64)
+def compiled(observer: Observer, source, reducer: Reducer, mesh=None, post: Optional[Callable] = None,
+             out_specs=None, reduce: Optional[Callable] = None, **static):
+    """``jit(fn(world, params, batch))`` of :func:`batch_fn` (``post(result)`` applied to its Result inside,
+    e.g. a loss averaged over runs), with the runs split over ``mesh`` (None: one device;
+    :func:`jaxatt.sharding.shard_runs` with ``out_specs`` (a :class:`Static` when unhashable) and ``reduce``). Cached on every argument, so calls
+    with new params, a world of the same structure or new runs reuse the compiled program."""
+    from . import sharding
+
+    fn = batch_fn(observer, source, reducer, **static)
+    if isinstance(out_specs, Static):
+        out_specs = out_specs.value
+    if post is not None:
+        inner = fn
+        fn = lambda world, params, batch: post(inner(world, params, batch))  # noqa: E731
+    kw = {} if out_specs is None else {"out_specs": out_specs}
+    return jax.jit(sharding.shard_runs(fn, mesh, reduce=reduce, **kw))
+
+
+@functools.lru_cache(maxsize=None)
+def records_of(pick: Callable, every: int = 1) -> Reducer:
+    """A reducer that keeps ``pick(t, truth, out)`` of every ``every``-th estimate and nothing else (cached)."""
+
+    def init(t, truth, out):
+        return (), pick(t, truth, out)
+
+    def update(acc, t, truth, out):
+        return acc, pick(t, truth, out)
+
+    return Reducer(init, update, lambda acc: (), every)

@@ -1,0 +1,169 @@
+"""Files written by jaxatt: one atomic JSON writer, output paths checked before any computation, and the
+provenance recorded with every result (machine, versions, git commit, command line, XLA flags, devices, date)."""
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+__all__ = ["write_json", "read_json", "check_output_path", "environment", "summarise", "to_jsonable"]
+
+
+def to_jsonable(o: Any):
+    """numpy / JAX scalars and arrays as Python numbers and lists; NaN and inf stay floats (JSON NaN/Infinity)."""
+    if isinstance(o, dict):
+        return {str(k): to_jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [to_jsonable(v) for v in o]
+    if isinstance(o, (str, bool, int, float)) or o is None:
+        return o
+    if hasattr(o, "_asdict"):
+        return to_jsonable(o._asdict())
+    try:
+        a = np.asarray(o)
+    except Exception:  # noqa: BLE001 - anything else is written by its repr
+        return repr(o)
+    if a.dtype == object:
+        return repr(o)
+    return a.tolist() if a.ndim else a.item()
+
+
+def check_output_path(path, flag: str = "output") -> Optional[Path]:
+    """Check, before computing, that ``path`` can be written: its folder exists or can be created and is
+    writable, and ``path`` is not a folder. Returns the Path (None for None). ValueError naming ``flag``."""
+    if path is None or path == "":
+        return None
+    p = Path(path)
+    if p.exists() and p.is_dir():
+        raise ValueError(f"{flag} {path}: is a folder, expected a file name")
+    parent = p.parent if str(p.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: cannot create its folder ({e.strerror or e})") from None
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"{flag} {path}: folder {parent} is not writable")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"{flag} {path}: file is not writable")
+    return p
+
+
+def write_json(path, payload: dict) -> None:
+    """Write ``payload`` as JSON atomically (temporary file in the same folder, fsync, rename): an interrupted
+    write never leaves a broken or partial file. Nothing is written for ``path`` None."""
+    if not path:
+        return
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(p.parent))
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(to_jsonable(payload), f, indent=1)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_json(path, what: str = "file") -> dict:
+    """Read a JSON file; ValueError naming the file on a missing, unreadable or malformed file."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{what} {path}: not found")
+    try:
+        with open(p) as f:
+            d = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{what} {path}: not readable JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{what} {path}: expected a JSON object")
+    return d
+
+
+def summarise(per_run) -> dict:
+    """metric -> {mean, std, min, max, per_run} over runs (NaN-aware for per-run arrays of any shape): the layout
+    of every Monte Carlo JSON (``metrics.<name>.mean`` ...)."""
+    out = {}
+    for k, v in per_run.items():
+        v = np.asarray(v, float)
+        if v.size == 0:
+            continue
+        with np.errstate(invalid="ignore"):
+            stat = lambda f: f(v, axis=0).tolist() if v.ndim > 1 else float(f(v))  # noqa: E731
+            out[k] = {"mean": stat(np.nanmean), "std": stat(np.nanstd), "min": stat(np.nanmin),
+                      "max": stat(np.nanmax), "per_run": v.tolist()}
+    return out
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _git_commit() -> Optional[str]:
+    """The commit of the checkout jaxatt runs from (with "+dirty" when modified), or None (an installed copy)."""
+    here = Path(__file__).resolve().parent.parent
+    if not (here / ".git").exists():
+        return None
+    try:
+        rev = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=5).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (rev + ("+dirty" if dirty else "")) if rev else None
+
+
+def environment() -> dict:
+    """Provenance as a JSON-ready dict: date (UTC), machine, versions, JAX devices and x64, the git commit (when
+    run from a checkout), the command line and XLA_FLAGS."""
+    import jax
+    import jaxlib
+
+    from . import __version__
+
+    return {
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "host": socket.gethostname(),
+        "platform": platform.platform(),
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "versions": {"jaxatt": __version__, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+                     "numpy": np.__version__},
+        "jax_backend": jax.default_backend(),
+        "jax_devices": [str(d) for d in jax.devices()],
+        "x64": bool(jax.config.jax_enable_x64),
+        "git_commit": _git_commit(),
+        "command_line": list(sys.argv),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
+
+
+def finite_or_none(x) -> Optional[float]:
+    x = float(x)
+    return x if math.isfinite(x) else None

@@ -1,0 +1,223 @@
+"""The observer registry: one place that names every built-in observer.
+
+Each observer module declares its :class:`Entry` (or several, one per variant) in a module-level ``ENTRIES``
+tuple: its name, factory, default params, tunable gains (units, constraint, tuned by default or not) and how it
+sets itself up on recorded data (initial attitude from the first samples, reference vectors, the navigation frame
+of its estimate). :data:`INDEX` maps each name to its module, so the names (CLI choices, docs) are known without
+importing JAX; :func:`get` imports the module on first use. The front door (:func:`jaxatt.filter`,
+:func:`jaxatt.broad_score`, :func:`jaxatt.fit`), the BROAD runner, the fitter and the CLI all read from here.
+
+Adding an observer: write its module (``Params``, ``State``, ``Out``, ``make_observer``, ``ENTRIES``), add a line
+to :data:`INDEX`, a test and a docs page.
+
+Frames and units on recorded data (what ``setup`` and ``default_params`` assume): body-frame gyro in rad/s,
+accelerometer in m/s^2 (specific force, "up" at rest), magnetometer in any unit (its own first sample is the
+reference); the estimate maps sensor to ``Entry.frame`` (ENU for every built-in), :func:`jaxatt.filter` converts
+it to the frame asked for.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
+
+import jax.numpy as jnp
+
+from .. import so3
+from ..types import Observer
+
+__all__ = ["Gain", "Entry", "INDEX", "names", "get", "register", "recorded_observer", "CONSTRAINTS",
+           "first_sample_frame"]
+
+#: Constraints a gain can declare (the fitter maps each to a transform, :mod:`jaxatt.fit.parametrize`):
+#: "positive" (elementwise > 0, learnt in log space), "schedule" (a positive piecewise-constant gain, one value per
+#: interval of the params' ``switch_times``), "spd" (symmetric positive definite, scaled Cholesky factor),
+#: "spd-diagonal" (SPD kept diagonal), "real" (unconstrained).
+CONSTRAINTS = ("positive", "schedule", "spd", "spd-diagonal", "real")
+
+
+class Gain(NamedTuple):
+    """One tunable field of an observer's Params.
+
+    Fields:
+        field: the Params field.
+        unit: its unit (as in the Params; e.g. "1/s", "s", "rad/s").
+        doc: one line on what it does (with the paper's equation where there is one).
+        constraint: one of :data:`CONSTRAINTS`.
+        tuned: tuned by default (``jaxatt.fit`` without ``tune=``).
+        bounds: optional (low, high) for "positive" gains: the fitter keeps the gain inside (a prior on sensible
+            values; e.g. time constants between 0.05 s and 30 s).
+        rate: optional (label, fn(params) -> factor): ``value * factor`` is also written in gains files (e.g. the
+            gain as a rate in 1/s when its own unit is 1/(s nT^2)).
+    """
+
+    field: str
+    unit: str
+    doc: str
+    constraint: str = "positive"
+    tuned: bool = True
+    bounds: Optional[Tuple[float, float]] = None
+    rate: Optional[Tuple[str, Callable[[Any], Any]]] = None
+
+
+class Entry(NamedTuple):
+    """A registered observer.
+
+    Fields:
+        name: registry name (CLI ``--observer``, ``jaxatt.filter(name, ...)``).
+        summary: one line (docs table, ``--help``).
+        reference: paper and equations.
+        make: ``make() -> Observer`` (the default variant; cached by the module).
+        default_params: ``default_params(dtype) -> Params``: the gains used when none are given (for observers
+            with ``setup``: in recorded-data units, rad/s, m/s^2, the data's magnetometer unit).
+        gains: the tunable gains (:class:`Gain`).
+        setup: ``setup(params, first_sample) -> params`` filling the per-recording fields (initial attitude,
+            reference vectors) from the first sample, differentiable in the gains; None when ``init`` needs
+            nothing more. ``recorded`` False: the observer is not set up for recorded data (its params must be
+            given, in the frame and units of its paper).
+        setup_fields: the Params fields ``setup`` fills.
+        frame: navigation frame of ``Out.q`` / ``Out.r`` after ``setup`` ("ENU", "NED", "NWU").
+        hold: the input of a step on recorded data (:data:`jaxatt.types.HOLDS`): "next" for filters that update
+            with each new sample (ahrs, VQF, BROAD), "zoh" / "linear" for continuous-time observers.
+        needs: the ImuSample fields it needs besides gyr.
+        shipped: a gains file of :mod:`jaxatt.data.gains` used instead of ``default_params`` when no params are
+            given (e.g. the robust AHRS tuned on BROAD), or None.
+        module: the module that declares it (docs page: docs/observers/<module>.md).
+        check: optional ``check(params)`` raising ValueError with a clear message.
+    """
+
+    name: str
+    summary: str
+    reference: str
+    make: Callable[[], Observer]
+    default_params: Callable[..., Any]
+    gains: Tuple[Gain, ...]
+    setup: Optional[Callable[[Any, Any], Any]] = None
+    setup_fields: Tuple[str, ...] = ()
+    frame: str = "ENU"
+    hold: str = "next"
+    needs: Tuple[str, ...] = ("acc", "mag")
+    shipped: Optional[str] = None
+    module: str = ""
+    check: Optional[Callable[[Any], None]] = None
+    recorded: bool = True
+
+    def gain(self, field: str) -> Gain:
+        for g in self.gains:
+            if g.field == field:
+                return g
+        raise ValueError(f"{field!r} is not a gain of {self.name} (gains: {[g.field for g in self.gains]})")
+
+    def params(self, dtype=None):
+        """The params used when none are given: the shipped gains file when there is one, else the defaults."""
+        if self.shipped is not None:
+            from ..fit import gainsfile
+
+            return gainsfile.load_shipped(self.shipped, self, dtype=dtype)
+        return self.default_params(dtype=dtype)
+
+
+#: name -> module (under jaxatt.observers) that declares it. The names are known without importing JAX.
+INDEX: Dict[str, str] = {
+    "batista-ges": "batista_ges",
+    "batista-so3": "batista_so3",
+    "complementary": "complementary",
+    "mahony": "mahony",
+    "mekf": "mekf",
+    "nlo": "nlio",
+    "nlio-fg": "nlio",
+    "nlio": "nlio",
+    "robust": "robust_ahrs",
+}
+
+_EXTRA: Dict[str, Entry] = {}
+
+
+def names(recorded: Optional[bool] = None) -> Tuple[str, ...]:
+    """Registered names (``recorded=True``: only those set up for recorded data; needs their modules)."""
+    all_names = tuple(INDEX) + tuple(n for n in _EXTRA if n not in INDEX)
+    if recorded is None:
+        return all_names
+    return tuple(n for n in all_names if get(n).recorded == recorded)
+
+
+def get(name: str) -> Entry:
+    """The :class:`Entry` of ``name`` (ValueError listing the registered names)."""
+    if isinstance(name, Entry):
+        return name
+    if name in _EXTRA:
+        return _EXTRA[name]
+    if name not in INDEX:
+        raise ValueError(f"unknown observer {name!r}; registered: {', '.join(names())}")
+    mod = importlib.import_module(f"{__package__}.{INDEX[name]}")
+    for e in getattr(mod, "ENTRIES", ()):
+        if e.name == name:
+            return e
+    raise ValueError(f"module jaxatt.observers.{INDEX[name]} declares no entry {name!r}")  # pragma: no cover
+
+
+def register(entry: Entry) -> Entry:
+    """Add an observer of your own to the registry (its name must be new); returns it."""
+    if entry.name in INDEX or entry.name in _EXTRA:
+        raise ValueError(f"an observer named {entry.name!r} is already registered")
+    _EXTRA[entry.name] = entry
+    return entry
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Set-up on recorded data
+# ------------------------------------------------------------------------------------------------------------
+def first_sample_frame(sample):
+    """(R0, m_nav, |a|) from the first acc / mag sample: the TRIAD start (sensor to ENU), the magnetic field in
+    that ENU frame (the reference of the magnetometer) and the specific-force norm (the gravity reference)."""
+    acc, mag = jnp.asarray(sample.acc), jnp.asarray(sample.mag)
+    r0 = so3.triad(acc, mag, "ENU")
+    return r0, so3.mv(r0, mag), jnp.sqrt(jnp.sum(acc * acc, axis=-1))
+
+
+class _Recorded(NamedTuple):
+    inner: Any
+    fields: tuple
+
+    @property
+    def t(self):
+        return self.inner.t
+
+
+def _wrap(base: Observer, setup: Callable, fields: Tuple[str, ...], name: str) -> Observer:
+    def fill(p, s):
+        return p._replace(**dict(zip(fields, s.fields)))
+
+    def init(p, sample):
+        pt = setup(p, sample)
+        return _Recorded(base.init(pt, sample), tuple(getattr(pt, f) for f in fields))
+
+    def step(p, s, u, dt):
+        inner, out = base.step(fill(p, s), s.inner, u, dt)
+        return _Recorded(inner, s.fields), out
+
+    def output(p, s):
+        return base.output(fill(p, s), s.inner)
+
+    if base.output is None:
+        raise ValueError(f"observer {name!r} needs an output(params, state) function to be set up for recorded data")
+    return Observer(init, step, name, output)
+
+
+_WRAPPED: Dict[str, Observer] = {}
+
+
+def recorded_observer(entry) -> Observer:
+    """The observer of ``entry`` (a name or :class:`Entry`) as run on recorded data: ``init`` calls the entry's
+    ``setup`` on the first sample and keeps the per-recording fields in the state, ``step`` puts them back into
+    the params it is given (so gradients reach every other field). The entry's own observer when it has no
+    set-up. Cached: the same entry gives the same Observer (jitted runners are reused)."""
+    e = get(entry)
+    if not e.recorded:
+        raise ValueError(f"observer {e.name!r} is not set up for recorded data (it needs the references and gains of "
+                         "its paper): pass the Observer and its params yourself")
+    if e.setup is None:
+        return e.make()
+    if e.name not in _WRAPPED:
+        _WRAPPED[e.name] = _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name)
+    return _WRAPPED[e.name]
+

@@ -1,0 +1,336 @@
+"""The study protocol: one typed object per paper set-up, and the one runner that reproduces, evaluates and feeds
+the fitter for every study.
+
+A :class:`Study` says, for a configuration (a NamedTuple whose defaults are the paper's set-up), what to simulate
+(``scenario``), which observers are compared with which gains (``observers``), what their errors are
+(``errors``), over which windows they are measured, what the paper published and how its tables look.
+:func:`reproduce` runs every compared observer through :func:`jaxatt.montecarlo.monte_carlo`, writes one JSON
+layout (atomically, after every chunk, so an interrupted run keeps its finished runs) and prints the study's
+tables; :func:`evaluate` compares gains from a gains file with the paper's on the same runs; :func:`setup` gives
+the fitter what it needs to tune the study's tuned observer on simulated seeds.
+
+JSON layout of :func:`reproduce` / :func:`evaluate` (stable keys): ``experiment``, ``study``, ``config``,
+``environment``, ``notes``, ``complete``, ``runs_done``, ``paper``, ``observers.<label>.{runs_done, metrics,
+timing}`` and, when one observer is compared, ``metrics.<name>.{mean, std, min, max, per_run}`` at the top; the
+study may add its own keys (the NLIO tables: ``observers.<label>.mae`` / ``.rmse``).
+"""
+from __future__ import annotations
+
+import abc
+import math
+import sys
+import time
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .. import io
+
+__all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict"]
+
+
+def config_dict(cfg) -> dict:
+    """A Config NamedTuple as a JSON-ready dict (tuples as lists)."""
+    if cfg is None:
+        return {}
+    d = cfg._asdict() if hasattr(cfg, "_asdict") else dict(cfg)
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+
+class Setup(NamedTuple):
+    """What the fitter and :func:`evaluate` need of one study configuration: the tuned observer on the scenario.
+
+    Fields: study (name), config, scenario, observer, params (the paper's gains), entry (registry name of the
+    observer: its gain declarations), errors_fn, duration, dt (s), hold, windows (MAE/RMSE windows), window_start
+    (s), init_params (per-run initial-params draw or None), loss_kind, loss_windows (name -> (start_s, end_s) with
+    "steady" and "transient"), check_params, paper (published numbers), notes.
+    """
+
+    study: str
+    config: Any
+    scenario: Any
+    observer: Any
+    params: Any
+    entry: str
+    errors_fn: Callable
+    duration: float
+    dt: float
+    hold: str
+    windows: tuple
+    window_start: float
+    init_params: Optional[Callable]
+    loss_kind: str
+    loss_windows: Mapping[str, Tuple[float, float]]
+    check_params: Optional[Callable]
+    paper: Mapping[str, Any]
+    notes: Sequence[str]
+
+
+class Study(abc.ABC):
+    """A paper's simulation study. Subclasses set the class attributes and implement the abstract methods.
+
+    Class attributes: ``name`` (CLI name), ``paper`` (reference, with the section), ``tuned`` (label of the observer
+    that ``jaxatt tune`` tunes), ``entry`` (its registry name), ``loss_kind`` (pointwise loss of
+    :mod:`jaxatt.fit.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric, label) rows of the table).
+    """
+
+    name: str = ""
+    paper: str = ""
+    tuned: str = ""
+    entry: str = ""
+    loss_kind: str = "angle_sq"
+    units: Mapping[str, str] = {}
+    rows: Sequence[Tuple[str, str]] = ()
+
+    # ---- configuration -------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def config(self, **overrides):
+        """The study's Config with ``overrides`` (validated; ValueError naming the field)."""
+
+    @abc.abstractmethod
+    def scenario(self, cfg):
+        """The simulated platform (``truth_at / propagate / sample / n_channels / r0``)."""
+
+    @abc.abstractmethod
+    def observers(self, cfg, dtype=None) -> Dict[str, Tuple[Any, Any]]:
+        """label -> (Observer, params with the paper's gains) of every compared observer."""
+
+    @abc.abstractmethod
+    def errors(self, truth, out) -> Dict[str, Any]:
+        """Named error vectors of one estimate (:func:`jaxatt.montecarlo.monte_carlo`'s ``errors_fn``)."""
+
+    def windows(self, cfg) -> tuple:
+        """MAE / RMSE windows ((name, start_s, end_s), ...); none by default."""
+        return ()
+
+    def window_start(self, cfg) -> float:
+        return float(cfg.window_start)
+
+    def init_params(self, cfg) -> Optional[Callable]:
+        return None
+
+    def hold(self, cfg) -> str:
+        return cfg.hold
+
+    def loss_windows(self, cfg) -> Dict[str, Tuple[float, float]]:
+        ws = self.window_start(cfg)
+        return {"steady": (ws, math.inf), "transient": (0.0, ws)}
+
+    def published(self, cfg) -> dict:
+        """The paper's numbers for this configuration ({} when none apply)."""
+        return {}
+
+    def comparable(self, cfg) -> Optional[str]:
+        """None when ``cfg`` is the set-up of the published numbers, else a short reason (printed, stored)."""
+        return None
+
+    def notes(self, cfg) -> List[str]:
+        return []
+
+    def check_params(self, params) -> None:
+        pass
+
+    # ---- reporting -----------------------------------------------------------------------------------
+    def trace(self, cfg, plotting: bool) -> Tuple[int, Optional[Callable]]:
+        """(trace_every, trace_fn) of the Monte Carlo (0: no traces)."""
+        return 0, None
+
+    def entry_extra(self, cfg, per_run: Mapping[str, np.ndarray]) -> dict:
+        """Study-specific keys of ``observers.<label>`` (e.g. the NLIO tables' MAE / RMSE)."""
+        return {}
+
+    def add_results(self, cfg, payload: dict, results: Mapping[str, Any]) -> None:
+        """Add study-specific keys computed from the Monte Carlo results (label -> MonteCarloResult) to
+        ``payload`` (e.g. averaged error curves); nothing by default."""
+
+    def format_report(self, payload: dict) -> str:
+        """The printed tables of a :func:`reproduce` payload (default: one row per metric of :attr:`rows`)."""
+        return table(self.rows, payload, self.units)
+
+    def plot(self, cfg, payload: dict, results: Mapping[str, Any], path: str, dtype=None) -> None:
+        """Write the study's figure to ``path`` (``results``: label -> MonteCarloResult)."""
+        raise ValueError(f"{self.name} has no figure")
+
+    # ---- the fitter's view ----------------------------------------------------------------------------
+    def setup(self, **overrides) -> Setup:
+        cfg = self.config(**overrides)
+        obs, params = self.observers(cfg)[self.tuned]
+        return Setup(self.name, cfg, self.scenario(cfg), obs, params, self.entry, self.errors, float(cfg.duration),
+                     float(cfg.dt), self.hold(cfg), tuple(self.windows(cfg)), self.window_start(cfg),
+                     self.init_params(cfg), self.loss_kind, self.loss_windows(cfg), self.check_params,
+                     self.published(cfg), self.notes(cfg))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Tables
+# ------------------------------------------------------------------------------------------------------------
+def table(rows: Sequence[Tuple[str, str]], payload: dict, units: Mapping[str, str]) -> str:
+    """quantity | paper | measured (mean over runs) | std over runs | ratio, for the single compared observer."""
+    values, paper = payload.get("metrics", {}), payload.get("paper", {})
+    units = dict(units, final_angle_error_deg="deg", max_angle_error_deg="deg")
+    lines = [f"{'quantity':34s} {'paper':>10s} {'measured':>12s} {'(std over runs)':>16s} {'ratio':>7s}"]
+    for key, label in rows:
+        meas = values.get(key)
+        if meas is None or (key not in paper and key not in units):
+            continue
+        m = units.get(key, "")
+        pv = paper.get(key)
+        ratio = f"{meas['mean'] / pv:7.2f}" if (pv and meas) else ""
+        lines.append(f"{label + (' [' + m + ']' if m else ''):34s} {pv if pv is not None else '-':>10} "
+                     f"{meas['mean']:12.4g} {meas['std']:16.3g} {ratio}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Reproduce / evaluate
+# ------------------------------------------------------------------------------------------------------------
+def _log(quiet):
+    return (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+
+
+def _first_nonfinite(per_run: Mapping[str, np.ndarray], run_indices) -> Optional[str]:
+    for k, v in per_run.items():
+        v = np.asarray(v, float)
+        bad = ~np.isfinite(v.reshape(len(v), -1)).all(axis=1)
+        if bad.any():
+            return f"metric {k} is not finite in run {int(np.asarray(run_indices)[np.argmax(bad)])}"
+    return None
+
+
+def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, dtype=None,
+              json_path: Optional[str] = None, plot_path: Optional[str] = None, quiet: bool = False,
+              progress=None, title: Optional[str] = None, observers: Optional[Mapping[str, Tuple[Any, Any]]] = None,
+              extra: Optional[dict] = None) -> dict:
+    """Monte Carlo of every compared observer of ``study`` at ``cfg``: prints the study's tables beside the
+    paper's numbers, writes the JSON (see the module docstring) after every chunk and at the end, and the figure.
+
+    ``observers`` (label -> (Observer, params)) replaces the study's (e.g. tuned gains); ``extra`` keys are added
+    to the payload. Returns the payload; ``payload["complete"]`` is False when interrupted (Ctrl-C: the finished
+    runs are kept) and ``payload["nonfinite"]`` names the first non-finite metric (run index) if any.
+    """
+    from .. import montecarlo
+
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    io.check_output_path(json_path, "--json")
+    io.check_output_path(plot_path, "--plot")
+    log = _log(quiet)
+    obs = dict(observers) if observers is not None else study.observers(cfg)
+    for _, (_, p) in obs.items():
+        study.check_params(p)
+    published = study.published(cfg)
+    why = study.comparable(cfg)
+    n_steps = int(round(cfg.duration / cfg.dt))
+    dtype_name = str(np.dtype(dtype)) if dtype is not None else "float64"
+    payload = {"experiment": title or f"{study.name} reproduce", "study": study.name, "paper_reference": study.paper,
+               "config": {**config_dict(cfg), "runs": runs, "seed": seed, "dtype": dtype_name, "chunk": chunk},
+               "environment": io.environment(), "notes": study.notes(cfg), "paper": published,
+               "comparable_with_paper": why is None, "observers": {}, "complete": False, "runs_done": 0}
+    if why is not None:
+        payload["not_comparable_because"] = why
+    payload.update(extra or {})
+    trace_every, trace_fn = study.trace(cfg, bool(plot_path))
+    results: Dict[str, Any] = {}
+    t_all = time.perf_counter()
+    complete = True
+    for label, (observer, params) in obs.items():
+        t0 = time.perf_counter()
+
+        def entry(res, t0=t0):
+            e = {"runs_done": len(res.run_indices), "metrics": io.summarise(res.per_run),
+                 "timing": {"wall_s": time.perf_counter() - t0, "runs": len(res.run_indices),
+                            "steps_per_run": n_steps,
+                            "run_steps_per_s": len(res.run_indices) * n_steps / max(time.perf_counter() - t0, 1e-9),
+                            "note": "compile included"}}
+            e.update(study.entry_extra(cfg, res.per_run))
+            return e
+
+        def on_chunk(res, label=label, entry=entry):
+            log(f"  {label}: {len(res.run_indices)}/{runs} runs, {time.perf_counter() - t_all:.1f} s")
+            payload["observers"][label] = entry(res)
+            _finish(payload, complete=False)
+            io.write_json(json_path, payload)
+
+        res = montecarlo.monte_carlo(study.scenario(cfg), observer, params, runs=runs, duration=cfg.duration,
+                                     dt=cfg.dt, seed=seed, errors_fn=study.errors, window_start=study.window_start(cfg),
+                                     hold=study.hold(cfg), chunk=chunk, trace_every=trace_every, trace_fn=trace_fn,
+                                     dtype=dtype, windows=study.windows(cfg), init_params=study.init_params(cfg),
+                                     on_chunk=on_chunk, progress=progress)
+        results[label] = res
+        payload["observers"][label] = entry(res)
+        bad = _first_nonfinite(res.per_run, res.run_indices)
+        if bad and "nonfinite" not in payload:
+            payload["nonfinite"] = f"{label}: {bad}"
+        complete &= res.complete
+        if not res.complete:
+            break
+    payload["timing"] = {"wall_s": time.perf_counter() - t_all, "runs": runs, "steps_per_run": n_steps}
+    study.add_results(cfg, payload, results)
+    _finish(payload, complete=complete and len(payload["observers"]) == len(obs))
+    if len(obs) == 1:
+        payload["timing"].update(next(iter(payload["observers"].values()))["timing"])
+    report = study.format_report(payload)
+    head = (f"{payload['experiment']}: {payload['runs_done']} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, "
+            f"observers in {dtype_name}" + ("" if payload["complete"] else "  [INTERRUPTED: partial results]"))
+    print(head)
+    if why is not None:
+        print(f"  NOT comparable with the paper's numbers: {why}")
+    for n in payload["notes"][:3]:
+        print(f"  {n}")
+    print(report)
+    payload["tables_text"] = report
+    wall = payload["timing"]["wall_s"]
+    print(f"wall {wall:.1f} s, {payload['runs_done'] * n_steps * len(payload['observers']) / max(wall, 1e-9):.3g} "
+          "run-steps/s (compile included)")
+    if plot_path and payload["complete"]:
+        study.plot(cfg, payload, results, plot_path, dtype=dtype)
+        payload["plot"] = plot_path
+        print(f"plot written to {plot_path}")
+    io.write_json(json_path, payload)
+    if json_path:
+        print(f"results written to {json_path}")
+    return payload
+
+
+def _finish(payload: dict, complete: bool) -> None:
+    entries = payload["observers"]
+    payload["complete"] = complete
+    payload["runs_done"] = min((e["runs_done"] for e in entries.values()), default=0)
+    if len(entries) == 1:
+        payload["metrics"] = next(iter(entries.values()))["metrics"]
+
+
+def evaluate(study: Study, params, *, runs: int = 100, seed: int = 1, json_path: Optional[str] = None,
+             cfg=None, gains_source: str = "paper", compare_paper: bool = True, chunk: int = 250, dtype=None,
+             quiet: bool = False, extra: Optional[dict] = None) -> dict:
+    """Monte Carlo of the study's tuned observer with ``params`` (e.g. from a gains file) on ``runs`` runs of base
+    ``seed``; with ``compare_paper`` also the paper's gains on the same runs: ``paper_gains_metrics`` and
+    ``comparison`` (mean of each metric, tuned / paper). Same JSON layout as :func:`reproduce`."""
+    from ..fit import gainsfile
+    from ..observers import registry
+
+    cfg = cfg if cfg is not None else study.config()
+    s = study.setup(**config_dict(cfg))
+    study.check_params(params)
+    gains = registry.get(s.entry).gains
+    obs = {study.tuned: (s.observer, params)}
+    payload = reproduce(study, cfg, runs=runs, seed=seed, chunk=chunk, dtype=dtype, json_path=json_path,
+                        quiet=quiet, title=f"{study.name} evaluate", observers=obs,
+                        extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source,
+                               **(extra or {})})
+    if compare_paper and gains_source != "paper" and payload["complete"]:
+        ref = reproduce(study, cfg, runs=runs, seed=seed, chunk=chunk, dtype=dtype, json_path=None, quiet=True,
+                        title=f"{study.name} paper gains", observers={study.tuned: (s.observer, s.params)})
+        pm = ref["metrics"]
+        metrics = payload["metrics"]
+        payload["paper_gains_metrics"] = pm
+        payload["comparison"] = {k: {"tuned": metrics[k]["mean"], "paper_gains": pm[k]["mean"],
+                                     "ratio": (metrics[k]["mean"] / pm[k]["mean"] if pm[k]["mean"] else None)}
+                                 for k in metrics if k in pm and np.ndim(metrics[k]["mean"]) == 0}
+        lines = [f"{'metric':34s} {'tuned':>12s} {'paper gains':>12s} {'ratio':>7s}"]
+        for k, c in list(payload["comparison"].items())[:16]:
+            lines.append(f"{k:34s} {c['tuned']:12.5g} {c['paper_gains']:12.5g} "
+                         f"{(c['ratio'] if c['ratio'] is not None else float('nan')):7.3f}")
+        print("\n".join(lines))
+        io.write_json(json_path, payload)
+    return payload

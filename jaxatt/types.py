@@ -1,0 +1,97 @@
+"""The data types every part of jaxatt shares: samples, the input of one step, and the observer interface.
+
+This module imports nothing of jaxatt (it is the bottom of the import graph with :mod:`jaxatt.so3`).
+
+Conventions (stated once here, used everywhere):
+
+* Body (sensor) frame for every measurement; a rotation ``R`` / quaternion ``q`` (Hamilton, scalar first
+  ``(w, x, y, z)``) maps body coordinates to the navigation frame: ``v_nav = R @ v_body``.
+* SI units: t in s, gyro in rad/s, accelerometer (specific force) in m/s^2; the magnetometer in the unit of the
+  data or scenario (nT for the Batista papers, gauss for the NLIO paper, uT for BROAD).
+* Arrays are time-major ``(T, 3)``; batches of runs or trials lead ``(B, T, 3)``.
+
+Alignment (one rule for every path, :mod:`jaxatt.engine`): T samples at t_0 ... t_{T-1} give T estimates; estimate
+0 is ``init``'s (at t_0), estimate k >= 1 is the state after the step over [t_{k-1}, t_k].
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple, Optional
+
+__all__ = ["ImuSample", "VectorSample", "Interval", "Observer", "HOLDS"]
+
+#: How a step over [t_k, t_{k+1}] sees the samples (see :class:`Interval` and :mod:`jaxatt.engine`):
+#: "zoh" hands it sample k (held over the step, continuous-time observers integrated forward), "linear" an
+#: :class:`Interval` (sample k, sample k+1) for interpolation at the integrator's stage times, "next" sample
+#: k+1 (a discrete filter that updates with each new sample and reports the estimate at its time, as ahrs,
+#: VQF and BROAD's example code do).
+HOLDS = ("zoh", "linear", "next")
+
+
+class ImuSample(NamedTuple):
+    """One IMU sample (or, stacked time-major, a log of them). Absent sensors are None; a missing reading
+    inside a log is NaN.
+
+    Fields:
+        t:   time (s), shape () (a log: (T,)).
+        gyr: angular rate (rad/s), body frame, (3,).
+        acc: specific force (m/s^2), body frame, (3,) or None ("up" at rest).
+        mag: magnetic field (unit of the data: nT, gauss or uT), body frame, (3,) or None.
+    """
+
+    t: Any
+    gyr: Any
+    acc: Optional[Any] = None
+    mag: Optional[Any] = None
+
+
+class VectorSample(NamedTuple):
+    """One sample of gyro and general vector measurements with their references valid at that time (the
+    setting of Trumpf, Mahony, Hamel, Lageman 2012, Sections III-IV).
+
+    Fields (one time step; a log stacks them time-major, e.g. body_meas (T, n1, 3)):
+        t:             time (s), shape ().
+        gyr:           angular rate (rad/s), body frame, (3,).
+        body_meas:     complementary measurements a_i = R^T a_ref_i(t), body frame, (n1, 3); None if n1 = 0.
+        ref_inertial:  their references a_ref_i(t), inertial frame, (n1, 3); None = constant references of
+                       the observer's params.
+        inertial_meas: compatible measurements b_j = R b_ref_j(t), inertial frame, (n2, 3); None if n2 = 0.
+        ref_body:      their references b_ref_j(t), body frame, (n2, 3); None = constant references.
+
+    Vectors need not be unit. NaN marks a missing reading.
+    """
+
+    t: Any
+    gyr: Any
+    body_meas: Optional[Any] = None
+    ref_inertial: Optional[Any] = None
+    inertial_meas: Optional[Any] = None
+    ref_body: Optional[Any] = None
+
+
+class Interval(NamedTuple):
+    """The samples at both ends of one step (``hold="linear"``): the input at the integrator's stage times is
+    interpolated linearly between them (:func:`jaxatt.integrate.input_at`)."""
+
+    start: Any
+    end: Any
+
+
+class Observer(NamedTuple):
+    """An observer: pure functions over a state pytree (the shape of optax's ``GradientTransformation``).
+
+    * ``init(params, first_sample) -> state``: the state at the time of the first sample.
+    * ``step(params, state, u, dt) -> (state, out)``: advances the state by ``dt`` seconds; ``u`` is the input
+      of the step (a sample, or an :class:`Interval` of two; see :data:`HOLDS`). ``out`` is the estimate at the
+      end of the step and carries it as a field ``q`` (w, x, y, z) and/or ``r`` (3x3), body to navigation frame.
+    * ``output(params, state) -> out`` (optional): the estimate held by a state, with the structure ``step``
+      returns; gives estimate 0 (``init``'s). Without it the state's own ``q`` or ``r`` field is used.
+    * ``name``: a label for messages and files.
+
+    Gains live in the ``params`` pytree passed to every call, never in the closure, so ``jax.grad`` over gains
+    and ``jax.vmap`` over seeds or gain grids need nothing more.
+    """
+
+    init: Callable[[Any, Any], Any]
+    step: Callable[[Any, Any, Any, Any], tuple]
+    name: str = "observer"
+    output: Optional[Callable[[Any, Any], Any]] = None
