@@ -26,7 +26,6 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .sim import imu
 from .types import ImuSample, Observer
 
 __all__ = ["run", "simulate", "simulate_log", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys",
@@ -71,21 +70,24 @@ def _pick_out(t, truth, out):
 
 
 @functools.lru_cache(maxsize=32)
-def log_runner(observer: Observer, hold: str = "zoh"):
+def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
     """Pure, jitted ``fn(params, samples, dt) -> Out (T, ...)``: ``observer`` over one log of T samples (any sample
     pytree, time-major), T estimates (row 0 ``init``'s). ``dt``: a scalar step (s) or the T - 1 steps
-    t_{k+1} - t_k. No checks (see :func:`run`); vmap it over params for a batch of gains or initial estimates."""
+    t_{k+1} - t_k. ``dtype``: the observer's arithmetic (default: the samples' float type); ``init`` sees the first
+    sample in the samples' own precision (:mod:`jaxatt.engine`). No checks (see :func:`run`); vmap it over params
+    for a batch of gains or initial estimates."""
     engine.check_hold(hold)
+    obs_dtype = None if dtype is None else jnp.dtype(dtype)
 
     @jax.jit
     def go(params, samples, dt):
         n = jnp.shape(samples.gyr)[0]
-        dtype = jnp.asarray(samples.gyr).dtype
-        dt = jnp.asarray(dt, dtype)
+        odt = obs_dtype or jnp.asarray(samples.gyr).dtype
+        dt = jnp.asarray(dt)  # cast to the arithmetic in the scan (give float32 steps for a bit-exact float32 run)
         per_step = dt.ndim == 1
         dts = jnp.concatenate([dt[:1], dt]) if per_step else dt
         fn = engine.batch_fn(observer, engine.Recorded(n - 1, per_step), engine.records_of(_pick_out, 1), hold=hold,
-                             obs_dtype=dtype)
+                             obs_dtype=odt)
         item = {"samples": jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], samples), "dt": dts[None],
                 "truth": None}
         return jax.tree_util.tree_map(lambda a: a[0], fn(None, params, item).records)

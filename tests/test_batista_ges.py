@@ -9,7 +9,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from jaxatt import montecarlo, so3  # noqa: E402
-from jaxatt.experiments import batista_ges as E  # noqa: E402
+from jaxatt.studies import batista_ges as E  # noqa: E402
 from jaxatt.observers import batista_ges as ges  # noqa: E402
 from jaxatt.sim import earth  # noqa: E402
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from jaxatt import montecarlo, so3
-from jaxatt.experiments import batista_so3 as E
+from jaxatt.studies import batista_so3 as E
 from jaxatt.observers import batista_so3 as obs
 from jaxatt.sim import earth
 

@@ -15,19 +15,23 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxatt import montecarlo, so3
+from jaxatt import engine, frames, montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.observers import mahony
 from jaxatt.types import ImuSample
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data" / "broad"
-PUBLISHED = DATA / "published" / "results_mahony_average_rmse.json"
+from broad_data import DATA, PUBLISHED, need_data  # noqa: E402
 
 
-def need_data():
-    if not (DATA.is_dir() and PUBLISHED.exists() and broad.list_trials(DATA)):
-        pytest.skip(f"BROAD data not found in {DATA}")
-    pytest.importorskip("h5py")
+def broad_protocol_quats(trial, kp, ki, dtype):
+    """BROAD's example code: setState from sample 0 (start computed in float64), then the filter (its C code, in
+    ``dtype``) updates with samples 0 ... N-1 (sample 0 a second time); its sensor-to-NWU output is rotated into
+    ENU in float64. In jaxatt's alignment (T estimates, estimate 0 = init's, hold="next": estimate k uses sample k)
+    that is the log with sample 0 duplicated, estimates 1 ... N."""
+    dup = jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), trial.samples)
+    run = montecarlo.log_runner(mahony.make_observer("broad"), "next", dtype=dtype)
+    out = run(mahony.default_params(kp, ki, dtype=dtype), dup, broad.step_dt(trial.rate_hz, dtype))
+    return frames.change_frame(np.asarray(out.q_nwu, np.float64)[1:], "ENU", "NWU")
 
 
 def random_quats(rng, n, scale=1.0):
@@ -311,21 +315,31 @@ def test_padding_alignment_and_differentiable_batch_metric():
     assert not pad.movement[0, 300:].any() and np.all(np.isfinite(pad.samples.gyr))
     obs, p = mahony.make_observer(), mahony.default_params(1.5, 0.1)
     step = jax.jit(obs.step)
-    res = broad.evaluate(obs, p, trials)
+    res = broad.score(obs, p, trials, hold="next")
     tr = trials[0]
-    q, outs = broad.run_on_trial(obs, p, tr, outputs=True)
+    outs = montecarlo.log_runner(obs, "next")(p, tr.samples, 1.0 / tr.rate_hz)
+    q = np.asarray(outs.q)
     assert q.shape == (len(tr.samples.t), 4)
-    # estimate k is the one after processing sample k: jaxatt label t_k + dt
-    np.testing.assert_allclose(np.asarray(outs.t), tr.samples.t + 1.0 / tr.rate_hz, atol=1e-12)
-    # ... and the same as k+1 steps of the observer by hand
-    st = jax.jit(obs.init)(p, jax.tree_util.tree_map(lambda a: jnp.asarray(a[0]), tr.samples))
-    for k in range(3):
-        st, o = step(p, st, jax.tree_util.tree_map(lambda a: jnp.asarray(a[k]), tr.samples), 1.0 / tr.rate_hz)
+    # estimate k is at t_k: init's at t_0, then one step per sample ("next": sample k updates the estimate to t_k)
+    np.testing.assert_allclose(np.asarray(outs.t), tr.samples.t, atol=1e-12)
+    sample = lambda k: jax.tree_util.tree_map(lambda a: jnp.asarray(a[k]), tr.samples)  # noqa: E731
+    st = jax.jit(obs.init)(p, sample(0))
+    np.testing.assert_allclose(q[0], np.asarray(obs.output(p, st).q), atol=1e-15)
+    for k in range(1, 4):
+        st, o = step(p, st, sample(k), 1.0 / tr.rate_hz)
         np.testing.assert_allclose(q[k], np.asarray(o.q), atol=1e-14)
-    assert res[tr.name] == pytest.approx(broad.broad_errors(q, tr.quat_true, tr.movement), abs=1e-12)
+    # the metric accumulated in the scan (atan2 form) equals BROAD's numpy formulas on the stored estimates
+    np.testing.assert_allclose([res[tr.name][m] for m in broad.METRICS],
+                               [broad.broad_errors(q, tr.quat_true, tr.movement)[m] for m in broad.METRICS],
+                               rtol=1e-9)
+
+    padded = broad.pad_trials(trials)
+    fn = engine.compiled(obs, engine.Recorded(padded.samples.t.shape[1] - 1), broad.METRIC_REDUCER, hold="next",
+                         obs_dtype=jnp.float64)
+    item = broad.batch_item(padded, jnp.float64)
 
     def loss(params):
-        errs = broad.batch_errors_jax(obs, params, pad)
+        errs = fn(None, params, item).summary
         return jnp.mean(errs["total_rmse_deg"]), errs
 
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
@@ -389,9 +403,10 @@ def test_published_mahony_float64():
     """The float64 filter against BROAD's float32 C run: agreement up to the float32 rounding of the
     reference (measured max 5.6e-4 deg over 20 trials x 3 metrics; the errors themselves are 0.7-41 deg)."""
     pub, names = published_trials()
-    trials = broad.load_trials(DATA, names)
-    res = broad.evaluate(mahony.make_observer(), mahony.default_params(*mahony.BROAD_TAGP), trials)
-    diffs = [res[n][k] - pub["trials"][n]["tagp_parameters"][k] for n in names for k in broad.METRICS]
+    diffs = []
+    for tr in broad.load_trials(DATA, names):
+        res = broad.broad_errors(broad_protocol_quats(tr, *mahony.BROAD_TAGP, "float64"), tr.quat_true, tr.movement)
+        diffs += [res[k] - pub["trials"][tr.name]["tagp_parameters"][k] for k in broad.METRICS]
     assert max(abs(d) for d in diffs) < 2e-3, max(abs(d) for d in diffs)
 
 
@@ -399,11 +414,12 @@ _EXACT_SCRIPT = textwrap.dedent("""
     import json, sys
     import jax
     jax.config.update("jax_enable_x64", True)
+    sys.path.insert(0, sys.argv[3])
+    from test_broad import broad_protocol_quats
     from jaxatt.data import broad
-    from jaxatt.observers import mahony
     data, names = sys.argv[1], sys.argv[2].split(",")
-    res = broad.evaluate(mahony.make_observer(), mahony.default_params(0.74, 0.0012),
-                         broad.load_trials(data, names), dtype="float32")
+    res = {tr.name: broad.broad_errors(broad_protocol_quats(tr, 0.74, 0.0012, "float32"), tr.quat_true, tr.movement)
+           for tr in broad.load_trials(data, names)}
     print("RESULT" + json.dumps(res))
 """)
 
@@ -416,7 +432,8 @@ def test_published_mahony_float32_bit_exact():
         pytest.skip("--xla_cpu_max_isa=SSE4_2 is an x86 flag")
     pub, names = published_trials()
     env = dict(os.environ, XLA_FLAGS="--xla_cpu_max_isa=SSE4_2", JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", _EXACT_SCRIPT, str(DATA), ",".join(names)], env=env,
+    proc = subprocess.run([sys.executable, "-c", _EXACT_SCRIPT, str(DATA), ",".join(names), str(Path(__file__).parent)],
+                          env=env,
                           capture_output=True, text=True, timeout=600)
     if proc.returncode != 0 and "xla_cpu_max_isa" in proc.stderr:
         pytest.skip("this XLA does not know --xla_cpu_max_isa")

@@ -4,7 +4,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from jaxatt import integrate, so3
 from jaxatt.integrate import Interval, input_at

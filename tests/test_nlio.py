@@ -14,7 +14,7 @@ import pytest  # noqa: E402
 import scipy.linalg  # noqa: E402
 
 from jaxatt import metrics, montecarlo, so3  # noqa: E402
-from jaxatt.experiments import nlio as E  # noqa: E402
+from jaxatt.studies import nlio as E  # noqa: E402
 from jaxatt.integrate import Interval, rk4_step  # noqa: E402
 from jaxatt.observers import nlio  # noqa: E402
 from jaxatt.sim import ahrs  # noqa: E402
@@ -394,10 +394,13 @@ def test_window_metrics_and_random_initial_estimates():
 
 def test_reproduce_end_to_end(tmp_path, capsys):
     """The entry point behind ``jaxatt reproduce nlio-*``: tables with the paper's numbers, JSON, figure."""
+    from jaxatt import studies
+
     js, png = tmp_path / "r.json", tmp_path / "r.png"
-    d = E.reproduce("nlio-case3", runs=2, chunk=2, duration=1.0, observers=("NLIO-FG",), json_path=str(js),
-                    plot_path=str(png), quiet=True,
-                    windows=(("transient", 0.0, 0.5), ("steady", 0.5, 1.0), ("burst", 0.2, 0.4)))
+    study = studies.get("nlio-case3")
+    cfg = study.config(duration=1.0, observers=("NLIO-FG",),
+                       windows=(("transient", 0.0, 0.5), ("steady", 0.5, 1.0), ("burst", 0.2, 0.4)))
+    d = studies.reproduce(study, cfg, runs=2, chunk=2, json_path=str(js), plot_path=str(png), quiet=True)
     out = capsys.readouterr().out
     assert "MAEs of attitude, case3" in out and "burst window" in out and "ours (2)" in out
     import json
@@ -405,8 +408,9 @@ def test_reproduce_end_to_end(tmp_path, capsys):
     saved = json.load(open(js))
     assert saved["complete"] and saved["observers"]["NLIO-FG"]["runs_done"] == 2
     assert len(saved["observers"]["NLIO-FG"]["mae"]) == 6 and png.stat().st_size > 1000
-    assert saved["config"]["triad"] == "orthonormal" and saved["readings"] == E.READINGS
+    assert saved["config"]["triad"] == "orthonormal" and saved["notes"] == E.READINGS
     assert E.format_report(saved) == saved["tables_text"]
+    assert not saved["comparable_with_paper"] and "duration" in saved["not_comparable_because"]
     assert np.all(np.isfinite(d["observers"]["NLIO-FG"]["rmse"]))
     # the paper's RMSE columns are printed as (roll, yaw, pitch): paper_values reorders them
     assert E.paper_values("case2", "rmse")["NLO"] == (0.1853, 0.1576, 0.9419, 0.1850, 0.1573, 0.9400)
@@ -456,5 +460,7 @@ def test_bad_input_gets_clear_errors():
         E.config("case1", observers=("NLCO",))
     with pytest.raises(ValueError, match="window"):
         metrics.check_windows([("a", 2.0, 1.0)])
+    from jaxatt import studies
+
     with pytest.raises(ValueError, match="runs"):
-        E.reproduce("nlio-case1", runs=0)
+        studies.reproduce(studies.get("nlio-case1"), E.config("nlio-case1"), runs=0)

@@ -11,7 +11,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxatt import montecarlo  # noqa: E402
-from jaxatt.experiments import batista_ges as exp  # noqa: E402
+from jaxatt.studies import batista_ges as exp  # noqa: E402
 from jaxatt.observers import batista_ges as ges  # noqa: E402
 from jaxatt.types import ImuSample  # noqa: E402
 

@@ -1,15 +1,23 @@
-"""Constrained parametrizations (jaxatt.parametrize) and the gains JSON of jaxatt.tune: every theta gives a
-valid gain, round trips are exact, masks freeze exactly, gradients are finite. No simulation: fast."""
+"""Constrained parametrizations (jaxatt.fit.parametrize) and the gains file (jaxatt.fit.gainsfile): every theta
+gives a valid gain, round trips are exact, masks freeze exactly, gradients are finite. No simulation: fast."""
 import json
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxatt import parametrize as P
-from jaxatt import tune as T
-from jaxatt.experiments import batista_ges, batista_so3
+from jaxatt import schedule
+from jaxatt.fit import gainsfile
+from jaxatt.fit import parametrize as P
+from jaxatt.observers import registry
+from jaxatt.studies import batista_ges, batista_so3
+
+
+def for_observer(name, **kw):
+    """The parametrization of a registered observer's declared gains."""
+    return P.for_gains(registry.get(name).gains, **kw)
 
 
 def ges_params():
@@ -80,7 +88,7 @@ def test_bounded_round_trip():
 @pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
 def test_experiment_parametrization_round_trip(name, make):
     p = make()
-    bound = P.for_experiment(name).bind(p)
+    bound = for_observer(name).bind(p)
     back = bound.constrain(bound.init())
     for f in p._fields:
         np.testing.assert_allclose(np.asarray(getattr(back, f)), np.asarray(getattr(p, f)), rtol=1e-12, atol=1e-300)
@@ -94,7 +102,7 @@ def test_experiment_parametrization_round_trip(name, make):
 
 def test_masks_freeze_exactly_with_zero_gradient():
     p = so3_params()
-    par = P.for_experiment("batista-so3", masks={"alpha1": P.schedule_mask(5, [-1]), "alpha0": False})
+    par = for_observer("batista-so3", masks={"alpha1": P.schedule_mask(5, [-1]), "alpha0": False})
     bound = par.bind(p)
     assert bound.n_free() == 1 + 5 + 1 + 1  # last alpha1 interval, alpha2 (5), alpha3, alpha4
     th = {k: v + 0.7 for k, v in bound.init().items()}
@@ -115,28 +123,52 @@ def test_masks_freeze_exactly_with_zero_gradient():
 
 
 def test_freeze_only_and_unknown_fields():
-    par = P.for_experiment("batista-ges", freeze=("gain_z",))
+    par = for_observer("batista-ges", freeze=("gain_z",))
     assert set(par.transforms) == {"alpha1", "alpha2"}
-    assert set(P.for_experiment("batista-ges", only=("gain_z",)).transforms) == {"gain_z"}
-    assert isinstance(P.for_experiment("batista-so3", method="softplus").transforms["alpha3"], P.Positive)
-    assert P.for_experiment("batista-so3", method="softplus").transforms["alpha3"].method == "softplus"
-    with pytest.raises(ValueError):
-        P.for_experiment("batista-ges", freeze=("epsilon",))
-    with pytest.raises(ValueError):
-        P.for_experiment("no-such-experiment")
+    assert set(for_observer("batista-ges", tune=("gain_z",)).transforms) == {"gain_z"}
+    assert isinstance(for_observer("batista-so3", method="softplus").transforms["alpha3"], P.Positive)
+    assert for_observer("batista-so3", method="softplus").transforms["alpha3"].method == "softplus"
+    with pytest.raises(ValueError, match="epsilon"):
+        for_observer("batista-ges", freeze=("epsilon",))
+    with pytest.raises(ValueError, match="no-such"):
+        registry.get("no-such-observer")
     with pytest.raises(ValueError):
         P.Parametrization({"nope": P.Positive()}).bind(ges_params())
 
 
-def test_register_gains_for_a_new_experiment():
-    P.register_gains("_test-exp", [P.Gain("alpha0", P.Positive(), "1/s", "test gain")])
-    try:
-        bound = P.for_experiment("_test-exp").bind(so3_params())
-        assert set(bound.transforms) == {"alpha0"}
-        with pytest.raises(ValueError):
-            P.register_gains("_test-exp2", [P.Gain("a", P.Positive(), "", ""), P.Gain("a", P.Positive(), "", "")])
-    finally:
-        P.GAINS.pop("_test-exp", None)
+class MyParams(NamedTuple):
+    k: jnp.ndarray
+    tau: jnp.ndarray
+    offset: jnp.ndarray
+
+
+def test_params_of_your_own_observer():
+    """for_params: every floating field whose values are all > 0 is a positive gain, the others are fixed;
+    tune= names them; a non-positive field cannot be tuned as a positive gain."""
+    p = MyParams(jnp.asarray([0.5, 2.0]), jnp.asarray(3.0), jnp.asarray([-1.0, 1.0]))
+    bound = P.for_params(p).bind(p)
+    assert set(bound.transforms) == {"k", "tau"}
+    back = bound.constrain({k: v + 0.3 for k, v in bound.init().items()})
+    np.testing.assert_allclose(np.asarray(back.k), np.asarray(p.k) * np.exp(0.3), rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(back.offset), np.asarray(p.offset))
+    assert set(P.for_params(p, tune=("tau",)).transforms) == {"tau"}
+    with pytest.raises(ValueError, match="offset"):
+        P.for_params(p, tune=("offset",))
+    with pytest.raises(ValueError, match="nope"):
+        P.for_params(p, tune=("nope",))
+
+
+def test_bounded_positive_gains_are_projected_into_their_bounds():
+    """A gain declared with bounds (the robust AHRS's time constants) is clipped into them in u."""
+    g = registry.get("robust").gain("tau_acc")
+    assert g.bounds == (0.05, 30.0)
+    tr = P.from_constraint(g)
+    lo, hi = tr.u_bounds()
+    bound = P.Parametrization({"tau_acc": tr}).bind(registry.get("robust").default_params())
+    th = bound.clip({"tau_acc": jnp.asarray(50.0)})
+    assert float(bound.constrain(th).tau_acc) == pytest.approx(30.0, rel=1e-12)
+    th = bound.clip({"tau_acc": jnp.asarray(-50.0)})
+    assert float(bound.constrain(th).tau_acc) == pytest.approx(0.05, rel=1e-12)
 
 
 @pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
@@ -144,29 +176,39 @@ def test_gains_json_round_trip(name, make, tmp_path):
     p = make()
     p = p._replace(alpha2=p.alpha2 * 0.5)
     path = tmp_path / "g.json"
-    T.save_gains(str(path), name, p, extra={"note": "test"})
+    gainsfile.write(str(path), observer=name, params=p, gains=registry.get(name).gains, study=name, note="test")
     payload = json.loads(path.read_text())
-    assert payload["format"] == T.GAINS_FORMAT and payload["experiment"] == name and payload["note"] == "test"
+    assert payload["format"] == gainsfile.FORMAT and payload["observer"] == name and payload["note"] == "test"
     a1 = payload["gains"]["alpha1"]
     assert a1["intervals_s"][0][0] == 0.0 and a1["intervals_s"][-1][1] is None
     assert len(a1["intervals_s"]) == len(a1["value"]) == len(a1["switch_times_s"]) + 1
     assert all(isinstance(g["unit"], str) and g["doc"] for g in payload["gains"].values())
-    exp, q, _ = T.load_gains(str(path))
-    assert exp == name
+    q = gainsfile.read_params(str(path), name)
     for f in p._fields:
         np.testing.assert_allclose(np.asarray(getattr(q, f)), np.asarray(getattr(p, f)), rtol=1e-15)
-    with pytest.raises(ValueError):
-        T.load_gains(str(path), experiment="batista-ges" if name != "batista-ges" else "batista-so3")
+    with pytest.raises(ValueError, match="holds gains of"):
+        gainsfile.read_params(str(path), "batista-ges" if name != "batista-ges" else "batista-so3")
     # a hand-edited file with a wrong shape, or an invalid gain, is refused
     payload["gains"]["alpha2"]["value"] = payload["gains"]["alpha2"]["value"][:-1]
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(payload))
-    with pytest.raises(ValueError):
-        T.load_gains(str(bad))
+    with pytest.raises(ValueError, match="alpha2"):
+        gainsfile.read_params(str(bad), name)
     payload["gains"]["alpha2"]["value"] = [-1.0] * len(a1["value"])
     bad.write_text(json.dumps(payload))
     with pytest.raises(ValueError):
-        T.load_gains(str(bad))
+        gainsfile.read_params(str(bad), name)
+    # jaxatt 0.1's layout ("jaxatt-gains/1" with "experiment") reads as the same gains
+    old = {"format": "jaxatt-gains/1", "experiment": name, "gains": json.loads(path.read_text())["gains"]}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    q_old = gainsfile.read_params(str(tmp_path / "old.json"), name)
+    np.testing.assert_allclose(np.asarray(q_old.alpha2), np.asarray(p.alpha2), rtol=1e-15)
+    for text, match in (("{", "JSON"), ('{"format": "x"}', "not a jaxatt gains file")):
+        bad.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            gainsfile.read(str(bad))
+    with pytest.raises(ValueError, match="not found"):
+        gainsfile.read(str(tmp_path / "missing.json"))
 
 
 @pytest.mark.parametrize("name,make", [("batista-ges", ges_params), ("batista-so3", so3_params)])
@@ -178,9 +220,9 @@ def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
 
     p = make()
     extra = [30.0, 700.0, 1200.0, 2400.0, float(np.asarray(p.switch_times)[0])]
-    fields = P.schedule_fields(name)
+    fields = [g.field for g in registry.get(name).gains if g.constraint == "schedule"]
     assert set(fields) == {"alpha1", "alpha2"}
-    q = P.refine_schedule(p, extra, fields)
+    q = schedule.refine(p, extra, fields)
     n_old, n_new = len(np.asarray(p.switch_times)), len(np.asarray(q.switch_times))
     assert n_new == n_old + 4 and np.all(np.diff(np.asarray(q.switch_times)) > 0)
     t = np.concatenate([np.linspace(-1.0, 3600.0, 7919), np.asarray(q.switch_times)])
@@ -194,14 +236,14 @@ def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
         ges_obs.check_params(q)
     else:
         so3_obs.check_params(q)
-    bound = P.for_experiment(name).bind(q)
+    bound = for_observer(name).bind(q)
     assert bound.theta0["alpha1"].shape == (n_new + 1,)
-    late = P.schedule_mask_from(q.switch_times, 1200.0)  # the intervals starting at 1200 and 2400 s
+    late = schedule.mask_from(q.switch_times, 1200.0)  # the intervals starting at 1200 and 2400 s
     assert late.shape == (n_new + 1,) and int(late.sum()) == int(np.sum(np.asarray(q.switch_times) >= 1200.0))
     with pytest.raises(ValueError, match="shape"):
-        P.refine_schedule(p, [10.0], ["alpha1", "ref_nav"])
+        schedule.refine(p, [10.0], ["alpha1", "ref_nav"])
     with pytest.raises(ValueError, match="finite"):
-        P.refine_schedule(p, [np.nan], fields)
+        schedule.refine(p, [np.nan], fields)
 
 
 def test_basis_transforms_start_at_the_start_and_stay_valid():
@@ -231,4 +273,4 @@ def test_basis_transforms_start_at_the_start_and_stay_valid():
     with pytest.raises(ValueError, match="basis"):
         P.LogBasis(np.ones((3, 1))).bind(a2)
     with pytest.raises(ValueError, match="not gains of"):
-        P.for_experiment("batista-ges", transforms={"epsilon": P.LogBasis(np.ones((1, 1)))})
+        for_observer("batista-ges", transforms={"epsilon": P.LogBasis(np.ones((1, 1)))})

@@ -1,18 +1,16 @@
 """Robust AHRS (jaxatt.observers.robust_ahrs): convergence, the magnetometer never tilts the estimate, gating flags,
-gradients through the gates, missing samples, the fast batched runner, and a real BROAD trial with the shipped
-gains (skipped without the data)."""
-from pathlib import Path
+gradients through the gates, missing samples, the front door, and a real BROAD trial with the shipped gains."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from jaxatt import so3
 from jaxatt.observers import robust_ahrs as ra
 from jaxatt.types import ImuSample
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data" / "broad"
+from broad_data import DATA, need_data  # noqa: E402
+
 DEG = np.pi / 180
 G = 9.81
 #: Earth field in ENU (uT): 44 uT, dip -68 deg, pointing north and down (BROAD's lab).
@@ -205,31 +203,39 @@ def test_missing_samples_are_handled():
     assert np.all(np.isfinite(np.asarray(o3.q)))
 
 
-def test_fast_runner_matches_observer_and_vmaps():
+def test_front_door_matches_the_observer_run():
+    """jaxatt.filter("robust", ...) with given params runs the same observer as the hand-written scan of this file
+    (which processes sample k to give output k: the estimate at t_k+1, i.e. jaxatt's estimate k+1 with hold="zoh");
+    in float32 it stays within 1e-3 deg of the float64 run."""
+    import jaxatt
+
     q, gyr, acc, mag, dt = simulate(duration=10.0)
     p = ra.default_params()
     o = run_log(p, gyr, acc, mag, dt)
-    one = ra.run(p, gyr, acc, mag, dt)["q"]
-    assert np.abs(np.asarray(one) - np.asarray(o.q)).max() < 1e-12
-    # two "trials" (the second reversed in time), batched, float32
-    batch = ra.run(p, np.stack([gyr, gyr[::-1]]), np.stack([acc, acc[::-1]]), np.stack([mag, mag[::-1]]),
-                   np.array([dt, dt]), dtype="float32", outputs=("q", "mag_disturbed"))
-    assert batch["q"].shape == (2, len(gyr), 4) and batch["q"].dtype == jnp.float32
-    assert angle_deg(batch["q"][0], o.q).max() < 1e-3
+    est = jaxatt.filter("robust", gyr, acc, mag, dt=dt, params=p, hold="zoh")
+    assert est.quat.dtype == np.float64 and est.frame == "ENU"
+    np.testing.assert_allclose(est.quat[0], np.asarray(ra.make_observer().output(p, ra.make_observer().init(
+        p, ImuSample(0.0, gyr[0], acc[0], mag[0]))).q), atol=1e-15)
+    assert np.abs(est.quat[1:] - np.asarray(o.q)[:-1]).max() < 1e-12
+    assert set(est.outputs) >= {"bias", "mag_disturbed", "rest"}
+    est32 = jaxatt.filter("robust", gyr.astype(np.float32), acc.astype(np.float32), mag.astype(np.float32), dt=dt,
+                          params=p, hold="zoh")
+    assert est32.quat.dtype == np.float32
+    assert angle_deg(est32.quat[1:], np.asarray(o.q)[:-1]).max() < 1e-3
 
 
 def test_broad_trial_with_shipped_gains():
-    if not (DATA.is_dir() and (DATA / "32_disturbed_attached_magnet_1cm.hdf5").exists()):
-        pytest.skip(f"BROAD data not found in {DATA}")
-    pytest.importorskip("h5py")
+    need_data()
+    import jaxatt
     from jaxatt.data import broad, gains
 
-    p = gains.load_params("all")
     res = {}
     for name in ("32_disturbed_attached_magnet_1cm", "14_undisturbed_slow_translation_with_breaks_B"):
         tr = broad.load_trial(DATA / f"{name}.hdf5")
-        qe = np.asarray(ra.run(p, tr.samples.gyr, tr.samples.acc, tr.samples.mag, 1.0 / tr.rate_hz)["q"])
-        res[name] = broad.broad_errors(qe, tr.quat_true, tr.movement)["total_rmse_deg"]
+        est = jaxatt.filter("robust", tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz)
+        res[name] = broad.broad_errors(est.quat, tr.quat_true, tr.movement)["total_rmse_deg"]
+        # the registry's shipped gains are the ones of jaxatt.data.gains
+        np.testing.assert_array_equal(np.asarray(est.params.tau_acc), np.asarray(gains.load_params("all").tau_acc))
     # VQF online: 7.67 and 0.73 deg; ahrs Madgwick (beta = 0.12): far above
     assert res["32_disturbed_attached_magnet_1cm"] < 2.5, res
     assert res["14_undisturbed_slow_translation_with_breaks_B"] < 1.2, res

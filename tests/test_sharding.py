@@ -15,8 +15,9 @@ SCRIPT = textwrap.dedent(
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
-    from jaxatt import montecarlo, tune
-    from jaxatt.experiments import batista_ges as E
+    from jaxatt import montecarlo
+    from jaxatt.fit import losses as tune
+    from jaxatt.studies import batista_ges as E
 
     assert len(jax.devices()) == 2, jax.devices()
     cfg = E.Config(duration=12.0)
@@ -91,7 +92,7 @@ def test_sharded_monte_carlo_and_gradient_equal_single_device():
 
 def test_progress_reporter_single_device():
     from jaxatt import montecarlo
-    from jaxatt.experiments import batista_ges as E
+    from jaxatt.studies import batista_ges as E
 
     cfg = E.Config(duration=25.0)
     seen = []

@@ -1,23 +1,26 @@
-"""Differentiable tuning (jaxatt.tune): the loss reproduces monte_carlo's runs, gradients through the whole
-simulation match central finite differences (with and without checkpointing), stay finite across gain
-switches and the Theorem-3 projection, and tuning from a poor gain lowers the loss on held-out seeds.
+"""Differentiable tuning on simulated seeds (jaxatt.fit): the loss reproduces monte_carlo's runs, gradients
+through the whole simulation match central finite differences (with and without checkpointing), stay finite
+across gain switches and the Theorem-3 projection, and tuning from a poor gain lowers the loss on held-out seeds.
 
-Cost control: every gradient here goes through the cached jitted loss of :func:`jaxatt.tune.make_loss_fn`
+Cost control: every gradient here goes through the cached jitted loss of :func:`jaxatt.fit.losses.make_loss_fn`
 with the same static settings per observer, so each (observer, checkpoint) pair compiles once for the
 whole module (three gradient programs, two forward programs); params (switch times, initial estimate, gains)
 change freely without compiling again.
 """
 import json
 import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxatt import montecarlo, so3
-from jaxatt import parametrize as P
-from jaxatt import tune as T
+from jaxatt import montecarlo, so3, studies
+from jaxatt.fit import fitter, gainsfile
+from jaxatt.fit import losses as L
+from jaxatt.fit import parametrize as P
+from jaxatt.observers import registry
 
 DURATION = 6.0  # s at 100 Hz: 600 steps
 CKPT = 100  # steps per checkpointed segment (6 segments)
@@ -25,8 +28,26 @@ KEYS = montecarlo.run_keys(0, [0, 1])
 R40 = np.asarray(so3.exp(jnp.deg2rad(40.0) * jnp.asarray([1.0, 2.0, 2.0]) / 3.0))
 
 
-def problem(name, checkpoint=CKPT):
-    return T.make_problem(name, duration=DURATION, checkpoint=checkpoint)
+class Problem(NamedTuple):
+    setup: Any
+    spec: Any
+    loss_fn: Any
+    checkpoint_segment: int
+
+
+def problem(name, checkpoint=CKPT, duration=DURATION):
+    """A study's tuned observer with its loss windows, the loss compiled once per (observer, checkpoint)."""
+    s = studies.get(name).setup(duration=duration)
+    (ss, se), (ts, te) = s.loss_windows["steady"], s.loss_windows["transient"]
+    spec = L.loss_spec(s.loss_kind, steady_start=ss, steady_end=se, transient_start=ts, transient_end=te)
+    f = L.make_loss_fn(s.observer, duration=s.duration, dt=s.dt, spec=spec, hold=s.hold, checkpoint=checkpoint,
+                       init_params=s.init_params)
+    return Problem(s, spec, f, L.segment_length(int(round(s.duration / s.dt)), checkpoint))
+
+
+def gains_of(name):
+    """The tunable gains the registry declares for a study's tuned observer."""
+    return P.for_gains(registry.get(studies.get(name).entry).gains)
 
 
 def ges_params(base, **kw):
@@ -79,30 +100,30 @@ def unit_direction(theta, field, index):
 @pytest.fixture(scope="module")
 def ges():
     prob = problem("batista-ges")
-    bound = P.for_experiment("batista-ges").bind(ges_params(prob.setup.params))
+    bound = gains_of("batista-ges").bind(ges_params(prob.setup.params))
     loss, g, aux = value_and_grad(prob, bound)
     return prob, bound, loss, g, aux
 
 
 def test_segment_length():
-    assert T.segment_length(360_000) == 1000  # 360 stored carries + 1000 recomputed steps
-    assert T.segment_length(4_000_000) == 2000
-    assert T.segment_length(600) == 1000  # one block: a short horizon needs no finer segments
-    assert T.segment_length(600, False) == 0 and T.segment_length(600, None) == 0
-    assert T.segment_length(600, 200) == 200 and T.segment_length(10_000, 3000) == 3000
+    assert L.segment_length(360_000) == 1000  # 360 stored carries + 1000 recomputed steps
+    assert L.segment_length(4_000_000) == 2000
+    assert L.segment_length(600) == 1000  # one block: a short horizon needs no finer segments
+    assert L.segment_length(600, False) == 0 and L.segment_length(600, None) == 0
+    assert L.segment_length(600, 200) == 200 and L.segment_length(10_000, 3000) == 3000
     with pytest.raises(ValueError):
-        T.segment_length(600, 300)
+        L.segment_length(600, 300)
     with pytest.raises(ValueError):
-        T.segment_length(600, "sqrt")
+        L.segment_length(600, "sqrt")
 
 
 def test_loss_spec_windows():
-    spec = T.loss_spec("angle", steady_start=10.0, transient_end=5.0, w_transient=0.5)
+    spec = L.loss_spec("angle", steady_start=10.0, transient_end=5.0, w_transient=0.5)
     assert spec.windows == (("steady", 10.0, math.inf, 1.0), ("transient", 0.0, 5.0, 0.5))
     with pytest.raises(ValueError):
-        T.loss_spec("nope")
+        L.loss_spec("nope")
     with pytest.raises(ValueError):
-        T.loss_spec("angle", steady_start=3.0, steady_end=2.0)
+        L.loss_spec("angle", steady_start=3.0, steady_end=2.0)
 
 
 def test_same_runs_as_monte_carlo(ges):
@@ -132,12 +153,12 @@ def test_ges_gradient_matches_finite_differences_across_switches(ges):
 
 
 def test_refined_schedule_same_loss_and_split_gradients_sum(ges):
-    """Splitting Table-1 intervals (jaxatt.parametrize.refine_schedule) changes nothing in the simulation, and
+    """Splitting Table-1 intervals (jaxatt.schedule.refine) changes nothing in the simulation, and
     the gradient with respect to the log-gain of a split interval is the sum of its parts' gradients (chain
     rule): two independent computations of the same derivative."""
     prob, bound, loss, g, _ = ges
     refined = P.refine_schedule(bound.base, [2.5, 4.5, 5.8], ["alpha1", "alpha2"])  # splits intervals 2, 4, 6
-    rbound = P.for_experiment("batista-ges").bind(refined)
+    rbound = gains_of("batista-ges").bind(refined)
     rloss, rg, _ = value_and_grad(prob, rbound)
     assert rloss == pytest.approx(loss, rel=1e-12)
     groups = [[0], [1], [2, 3], [4], [5, 6], [7], [8, 9]]  # refined interval indices of each old interval
@@ -167,7 +188,7 @@ def test_gradient_finite_through_theorem3_projection_switch(ges):
     (The FD test runs the all-projected case: there ||R^T R^ - I||_F stays below 0.45.)"""
     prob, _, _, _, _ = ges
     base = ges_params(prob.setup.params, gain_z=10.0 * np.asarray(prob.setup.params.gain_z))
-    bound = P.for_experiment("batista-ges").bind(base)
+    bound = gains_of("batista-ges").bind(base)
     loss, g, aux = value_and_grad(prob, bound)
     eps = float(base.epsilon)
     assert float(so3.orthogonality_error(base.r_hat_0)) < eps  # projected at the start
@@ -186,7 +207,7 @@ def so3_problem():
 
 def test_so3_gradient_matches_finite_differences(so3_problem):
     prob = so3_problem
-    bound = P.for_experiment("batista-so3").bind(so3_params(prob.setup.params))
+    bound = gains_of("batista-so3").bind(so3_params(prob.setup.params))
     loss, g, _ = value_and_grad(prob, bound)
     assert math.isfinite(loss)
     for k, v in g.items():
@@ -208,10 +229,11 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
     frozen = {"alpha0": False, "alpha1": False, "alpha2": False, "alpha4": False}
     out = tmp_path / "gains.json"
     lines = []
-    kw = dict(train_runs=2, batch_runs=2, val_runs=2, lr=0.8, duration=DURATION, start=poor, checkpoint=CKPT,
+    kw = dict(train_runs=2, batch=2, val_runs=2, lr=0.8, config={"duration": DURATION}, start=poor, checkpoint=CKPT,
               masks=frozen, quiet=True)
-    res = T.tune("batista-so3", steps=8, out_path=str(out), val_every=2, patience=None, callback=lines.append, **kw)
-    assert res.result.status == "done" and len(lines) == 8
+    res = fitter.fit(None, None, "batista-so3", steps=8, out=str(out), val_every=2, patience=None,
+                     callback=lines.append, **kw)
+    assert res.status == "done" and len(lines) == 8
     assert float(res.params.alpha3) > 10 * float(res.start_params.alpha3)
     for f in ("alpha0", "alpha1", "alpha2", "alpha4"):  # frozen
         np.testing.assert_array_equal(np.asarray(getattr(res.params, f)), np.asarray(getattr(res.start_params, f)))
@@ -219,15 +241,16 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
     start_loss = float(prob.loss_fn(prob.setup.scenario, res.start_params, held_out)[0])
     tuned_loss = float(prob.loss_fn(prob.setup.scenario, res.params, held_out)[0])
     assert tuned_loss < 0.75 * start_loss, (start_loss, tuned_loss)
-    assert res.result.best_val < res.result.start_val
-    # the gains file: human-readable, loads back into the experiment's Params
+    assert res.best_loss < res.start_loss
+    # the gains file: human-readable, loads back into the observer's Params
     payload = json.loads(out.read_text())
-    assert payload["format"] == T.GAINS_FORMAT and payload["status"] == "done"
+    assert payload["format"] == gainsfile.FORMAT and payload["status"] == "done"
+    assert payload["observer"] == "batista-so3" and payload["study"] == "batista-so3"
     assert payload["gains"]["alpha2"]["unit"] == "1/s" and len(payload["history"]) == 9
     assert payload["gains"]["alpha1"]["switch_times_s"] == [1.5, 3.0, 4.5, 5.5]
-    assert payload["tuning"]["n_tunable"] == 1
+    assert payload["settings"]["n_tunable"] == 1
     assert payload["gains"]["alpha3"]["as_rate"]["label"] == "alpha3 |I_m|^2 (1/s)"
-    _, loaded, _ = T.load_gains(str(out), prob.setup.params)
+    loaded = gainsfile.read_params(str(out), "batista-so3", base=prob.setup.params)
     for f in ("alpha0", "alpha1", "alpha2", "alpha3", "alpha4", "switch_times"):
         np.testing.assert_allclose(np.asarray(getattr(loaded, f)), np.asarray(getattr(res.params, f)), rtol=1e-12)
 
@@ -237,11 +260,18 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
             raise KeyboardInterrupt
 
     out2 = tmp_path / "interrupted.json"
-    res2 = T.tune("batista-so3", steps=8, out_path=str(out2), val_every=1, callback=stop, **kw)
-    assert res2.result.status == "interrupted"
+    res2 = fitter.fit(None, None, "batista-so3", steps=8, out=str(out2), val_every=1, callback=stop, **kw)
+    assert res2.status == "interrupted"
     p2 = json.loads(out2.read_text())
-    assert p2["status"] == "interrupted" and p2["best_step"] == res2.result.best_step >= 1
-    assert p2["best_val_loss"] < p2["start_val_loss"]
+    assert p2["status"] == "interrupted" and p2["best_step"] == res2.best_step >= 1
+    assert p2["best_loss"] < p2["start_loss"]
+    # resumed, it ends where the uninterrupted run (val_every=1) ends, to rounding
+    res3 = fitter.fit(None, None, "batista-so3", steps=8, out=str(out2), val_every=1, resume=True, **kw)
+    ref = fitter.fit(None, None, "batista-so3", steps=8, val_every=1, **kw)
+    assert res3.status == ref.status == "done"
+    np.testing.assert_allclose(float(res3.params.alpha3), float(ref.params.alpha3), rtol=1e-12)
+    assert [h.get("val_loss") for h in res3.history] == pytest.approx([h.get("val_loss") for h in ref.history],
+                                                                       rel=1e-12)
 
 
 def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
@@ -250,11 +280,16 @@ def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
     prob, _, _, _, _ = ges
     p = prob.setup.params
     gains = tmp_path / "g.json"
-    T.save_gains(str(gains), "batista-ges", p._replace(alpha2=0.5 * p.alpha2))
+    decl = registry.get("batista-ges").gains
+    gainsfile.write(str(gains), observer="batista-ges", study="batista-ges", params=p._replace(alpha2=0.5 * p.alpha2),
+                    gains=decl)
+    study = studies.get("batista-ges")
+    tuned = gainsfile.read_params(str(gains), "batista-ges", base=p)
     out = tmp_path / "eval.json"
-    payload = T.evaluate("batista-ges", str(gains), runs=2, seed=0, json_path=str(out), duration=DURATION)
+    payload = studies.evaluate(study, tuned, runs=2, seed=0, json_path=str(out), cfg=study.config(duration=DURATION),
+                               gains_source=str(gains), quiet=True)
     saved = json.loads(out.read_text())
-    assert saved["complete"] and saved["runs_done"] == 2 and saved["config"]["gains"] == str(gains)
+    assert saved["complete"] and saved["runs_done"] == 2 and saved["gains_path"] == str(gains)
     m = saved["metrics"]["mean_angle_error_deg"]
     assert set(m) == {"mean", "std", "min", "max", "per_run"} and len(m["per_run"]) == 2
     res = montecarlo.monte_carlo(prob.setup.scenario, prob.setup.observer, p._replace(alpha2=0.5 * p.alpha2), runs=2,
@@ -271,12 +306,13 @@ def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
 def test_nlio_case_gradient_matches_finite_differences():
     """nlio-case1 (NLIO-FG, random initial estimate, Euler-angle loss): the gradient along a direction in the
     unconstrained gains (Kp, kv, K1, K2 Cholesky / log) matches a central difference of the loss."""
-    prob = T.make_problem("nlio-case1", duration=4.0, checkpoint=100)
-    assert set(prob.parametrization.transforms) == {"kp", "kv", "k1", "k2"}
+    prob = problem("nlio-case1", checkpoint=100, duration=4.0)
+    bound = gains_of("nlio-case1").bind(prob.setup.params)
+    assert set(bound.transforms) == {"kp", "kv", "k1", "k2"}
     assert prob.spec.kind == "euler_sq" and prob.setup.init_params is not None
-    th0 = prob.theta0()
+    th0 = bound.init()
     keys = montecarlo.run_keys(0, [0, 1])
-    f = lambda th: prob.objective(th, keys)[0]  # noqa: E731
+    f = lambda th: prob.loss_fn(prob.setup.scenario, bound.constrain(th), keys)[0]  # noqa: E731
     g = jax.grad(f)(th0)
     leaves = jax.tree_util.tree_leaves(g)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
@@ -300,7 +336,7 @@ def test_basis_gradients_are_the_chain_rule_of_the_interval_gradients(ges):
     starts = np.concatenate([[0.0], np.asarray(base.switch_times, float)])
     b1 = np.stack([np.ones_like(starts), starts / starts.max()], 1)
     b2 = np.stack([starts < 3.0, starts >= 3.0, np.log1p(starts)], 1).astype(float)
-    tb = P.for_experiment("batista-ges", transforms={
+    tb = P.for_gains(registry.get("batista-ges").gains, transforms={
         "alpha1": P.LogBasis(b1), "alpha2": P.LogBasis(b2),
         "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1))))}).bind(base)
     assert tb.n_free() == 2 + 3 + 3

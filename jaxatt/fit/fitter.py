@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -153,7 +153,7 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
         best_theta = {k: jnp.asarray(v, dtype) for k, v in resume["best_theta"].items()}
         best_val, best_step, start_val = resume["best_val"], resume["best_step"], resume["start_val"]
         bad, n_nonfinite = resume["bad"], resume["n_nonfinite"]
-        best_train = resume.get("best_train", math.inf)
+        best_train = resume.get("best_train") if resume.get("best_train") is not None else math.inf
         history = list(resume["history"])
         sampler.restore(resume["sampler"])
         first = int(resume["step"]) + 1
@@ -371,7 +371,6 @@ def fit(observer=None, params=None, data=None, *, steps: int = 100, lr: float = 
             (:mod:`jaxatt.fit.losses`, :func:`jaxatt.schedule.refine`).
     Returns :class:`FitResult`. Raises ValueError (one line) on bad arguments.
     """
-    from ..observers import registry
 
     if not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}")

@@ -19,7 +19,7 @@ rate may carry ``as_rate``. Values are numbers or nested lists (matrices). Files
 from __future__ import annotations
 
 from importlib import resources
-from typing import Any, Dict, Mapping, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import jax.numpy as jnp
 import numpy as np

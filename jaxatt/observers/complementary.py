@@ -59,7 +59,7 @@ last valid gyro reading. :class:`Out` reports which measurements were used and w
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Optional, Sequence
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp

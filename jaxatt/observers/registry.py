@@ -121,6 +121,7 @@ INDEX: Dict[str, str] = {
     "batista-ges": "batista_ges",
     "batista-so3": "batista_so3",
     "complementary": "complementary",
+    "madgwick": "madgwick",
     "mahony": "mahony",
     "mekf": "mekf",
     "nlo": "nlio",

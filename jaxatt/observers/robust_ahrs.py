@@ -59,8 +59,7 @@ Everything is pure JAX: jit, vmap over trials (padded, masked) and over paramete
 """
 from __future__ import annotations
 
-import functools
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -71,7 +70,7 @@ from ..types import ImuSample, Interval, Observer
 from . import registry
 
 __all__ = ["Params", "State", "Out", "Coeffs", "make_observer", "default_params", "params_from_dict",
-           "params_to_dict", "coefficients", "run", "PARAM_NAMES", "TUNABLE", "OUTPUTS",
+           "params_to_dict", "coefficients", "PARAM_NAMES", "TUNABLE", "ENTRIES", "check_params",
            "quat_from_acc_mag_enu", "gain_from_tau"]
 
 _DEG = float(np.pi / 180.0)
@@ -518,53 +517,6 @@ def make_observer() -> Observer:
     broadcast over leading batch axes (the step is elementwise), and both vmap.
     """
     return _OBSERVER
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Fast batched runner
-# ------------------------------------------------------------------------------------------------------------
-#: Per-step outputs :func:`run` can return.
-OUTPUTS = ("q", "r", "bias", "mag_disturbed", "acc_rejected", "rest", "mag_weight", "acc_weight", "rest_weight",
-           "heading_error")
-
-
-def _scan_one(p, gyr, acc, mag, dt, outputs):
-    """One recording (T, 3) through init + step (the State carry of separate small arrays is what XLA's CPU
-    backend runs fastest)."""
-    first = ImuSample(jnp.zeros((), gyr.dtype), gyr[0], acc[0], mag[0])
-    state = _init(p, first)
-
-    def body(s, x):
-        s, o = _step(p, s, ImuSample(s.t, *x), dt)
-        return s, {k: getattr(o, k) for k in outputs}
-
-    return jax.lax.scan(body, state, (gyr, acc, mag))[1]
-
-
-@functools.partial(jax.jit, static_argnames=("outputs",))
-def _run_jit(p, gyr, acc, mag, dt, outputs):
-    fn = functools.partial(_scan_one, outputs=outputs)
-    for _ in range(gyr.ndim - 2):
-        fn = jax.vmap(fn, in_axes=(None, 0, 0, 0, 0))
-    return fn(p, gyr, acc, mag, jnp.broadcast_to(dt, gyr.shape[:-2]))
-
-
-def run(p: Params, gyr, acc, mag, dt, *, outputs: Sequence[str] = ("q",), dtype=None) -> dict:
-    """Run the filter over whole recordings, batched, in one jitted scan (the fast path).
-
-    Args:
-        p: Params.
-        gyr, acc, mag: (..., T, 3) rad/s, m/s^2, any field unit; sensor frame; leading axes are trials (pad
-            trials of different lengths by repeating the last sample, never with NaN).
-        dt: sample period (s), scalar or one per trial (shape ``gyr.shape[:-2]``).
-        outputs: names from :data:`OUTPUTS`.
-        dtype: arithmetic (default: the inputs' float type); float32 is the fast choice.
-    Returns {name: (..., T, ...)}: ``q`` (..., T, 4) sensor-to-ENU, estimate after processing sample k (the
-    alignment of :func:`jaxatt.data.broad.run_on_trial`), started by TRIAD from sample 0.
-    """
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(jnp.asarray(gyr).dtype, jnp.float32)
-    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    return _run_jit(Params(*map(cast, p)), cast(gyr), cast(acc), cast(mag), cast(dt), tuple(outputs))
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
-import sys
-import time
 from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 
 import jax
