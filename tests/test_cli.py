@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from jaxatt import cli
 
@@ -63,3 +64,173 @@ def test_excitation_of_a_log_file(tmp_path, capsys):
     assert cli.main(["excitation", "--log", str(path), "--mag-ref", "0.2,0,0.4", "--window", "2"]) == 0
     assert "exciting in every window" in capsys.readouterr().out
     assert cli.main(["excitation", "--log", str(path), "--window", "2"]) == 2  # mag without --mag-ref
+
+
+# ---------------------------------------------------------------------------------------------------------
+# filter, tune / evaluate, broad / broad-tune
+# ---------------------------------------------------------------------------------------------------------
+def _sim_log(seconds=10.0):
+    import jaxatt
+
+    samples, truth = jaxatt.montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=seconds, dt=0.01)
+    return jax_to_np(samples), np.asarray(truth.r)
+
+
+def jax_to_np(s):
+    from jaxatt.types import ImuSample
+
+    return ImuSample(*(None if v is None else np.asarray(v) for v in s))
+
+
+def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
+    from jaxatt.data import logs
+
+    samples, r_true = _sim_log()
+    log = tmp_path / "log.csv"
+    logs.save_log(log, samples)
+    out = tmp_path / "est.csv"
+    assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", str(out)]) == 0
+    table = np.genfromtxt(out, delimiter=",", names=True)
+    assert table.shape == (len(samples.t),) and table.dtype.names[:5] == ("t", "qw", "qx", "qy", "qz")
+    assert "bias_x" in table.dtype.names and "acc_used" in table.dtype.names
+    import jaxatt
+
+    est = jaxatt.filter("mahony", samples.gyr, samples.acc, samples.mag, t=samples.t)
+    np.testing.assert_allclose(np.column_stack([table[c] for c in ("qw", "qx", "qy", "qz")]), est.quat, atol=1e-15)
+    # NED output: the fixed rotation of the ENU one
+    out2 = tmp_path / "est_ned.csv"
+    assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--frame", "NED", "--out", str(out2)]) == 0
+    ned = np.genfromtxt(out2, delimiter=",", names=True)
+    q_ned = np.column_stack([ned[c] for c in ("qw", "qx", "qy", "qz")])
+    np.testing.assert_allclose(q_ned, jaxatt.frames.change_frame(est.quat, "NED", "ENU"), atol=1e-15)
+
+
+def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
+    """--observer module:attr --params module:attr: an observer defined in the user's own file."""
+    from jaxatt.data import logs
+
+    (tmp_path / "my_filter.py").write_text(
+        "import jax.numpy as jnp\n"
+        "from typing import NamedTuple\n"
+        "import jaxatt\n"
+        "from jaxatt import so3\n"
+        "class P(NamedTuple):\n"
+        "    k: jnp.ndarray\n"
+        "class S(NamedTuple):\n"
+        "    t: jnp.ndarray\n"
+        "    q: jnp.ndarray\n"
+        "def init(p, s):\n"
+        "    return S(jnp.asarray(s.t), so3.quat_canonical(so3.matrix_to_quat(so3.triad(s.acc, s.mag))))\n"
+        "def step(p, st, s, dt):\n"
+        "    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1), s.gyr]))\n"
+        "    q = q / jnp.linalg.norm(q)\n"
+        "    return S(st.t + dt, q), S(st.t + dt, q)\n"
+        "OBSERVER = jaxatt.Observer(init, step, 'gyro_only')\n"
+        "PARAMS = P(jnp.asarray(1.0))\n")
+    samples, r_true = _sim_log(5.0)
+    log = tmp_path / "log.npz"
+    logs.save_log(log, samples)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "est.csv"
+    assert cli.main(["filter", "--log", str(log), "--observer", "my_filter:OBSERVER", "--params", "my_filter:PARAMS",
+                     "--out", str(out)]) == 0
+    table = np.genfromtxt(out, delimiter=",", names=True)
+    assert table.dtype.names == ("t", "qw", "qx", "qy", "qz") and len(table) == len(samples.t)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["filter", "--log", "/nonexistent/log.csv", "--out", "{tmp}/e.csv"], "not found|No such file|does not exist"),
+    (["filter", "--log", "{log}", "--out", "{tmp}"], "is a folder"),
+    (["filter", "--log", "{log}", "--observer", "nope", "--out", "{tmp}/e.csv"], "unknown observer"),
+    (["filter", "--log", "{log}", "--observer", "nomodule:X", "--out", "{tmp}/e.csv"], "cannot import"),
+    (["filter", "--log", "{log}", "--observer", "robust", "--params", "a:b", "--out", "{tmp}/e.csv"], "--params"),
+    (["filter", "--log", "{log}", "--gains", "{tmp}/missing.json", "--out", "{tmp}/e.csv"], "not found"),
+    (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--json", "{tmp}"], "is a folder"),
+    (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--m-init", "rescaled"], "does not apply"),
+    (["reproduce", "nlio-case1", "--runs", "1", "--aggressive"], "does not apply"),
+    (["simulate", "--observer", "complementary", "--latitude", "45", "--runs", "1"], "does not apply"),
+    (["simulate", "--observer", "batista-ges", "--gain", "5", "--runs", "1"], "does not apply"),
+    (["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"],
+     "window_start"),
+    (["evaluate", "--experiment", "batista-so3", "--gains", "{tmp}/missing.json"], "not found"),
+    (["broad", "--data-dir", "/nonexistent"], "not found"),
+    (["tune", "--experiment", "batista-ges", "--out", "{tmp}", "--steps", "1"], "is a folder"),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
+    from jaxatt.data import logs
+
+    samples, _ = _sim_log(1.0)
+    log = tmp_path / "log.csv"
+    logs.save_log(log, samples)
+    argv = [a.format(tmp=tmp_path, log=log) for a in argv]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jaxatt: error:"), err
+    import re
+
+    assert re.search(match, err[0]), err[0]
+
+
+def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
+    gains = tmp_path / "g.json"
+    rc = cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--train-runs", "2", "--val-runs", "0",
+                   "--duration", "6", "--out", str(gains), "--quiet"])
+    assert rc == 0
+    d = json.loads(gains.read_text())
+    assert d["format"] == "jaxatt-gains/2" and d["observer"] == d["study"] == "batista-so3" and d["status"] == "done"
+    # a second tune to the same file is refused unless resumed or overwritten
+    assert cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--out", str(gains)]) == 2
+    assert "exists" in capsys.readouterr().err
+    out = tmp_path / "e.json"
+    assert cli.main(["evaluate", "--experiment", "batista-so3", "--gains", str(gains), "--runs", "2",
+                     "--duration", "6", "--json", str(out), "--quiet"]) == 0
+    e = json.loads(out.read_text())
+    assert e["gains_path"] == str(gains) and "comparison" in e and e["complete"]
+    # gains of another study are refused
+    assert cli.main(["evaluate", "--experiment", "batista-ges", "--gains", str(gains), "--runs", "1"]) == 2
+
+
+def _write_broad_trial(path, samples, q_true, rate):
+    import h5py
+
+    n = len(samples.t)
+    with h5py.File(path, "w") as f:
+        f.attrs["sampling_rate"] = rate
+        f["imu_gyr"], f["imu_acc"], f["imu_mag"] = samples.gyr, samples.acc, samples.mag
+        f["opt_quat"] = q_true
+        f["movement"] = np.arange(n) > n // 5
+
+
+def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
+    """Two small BROAD-format trials (simulated, ENU): jaxatt broad prints and writes the metric per trial and
+    group; broad-tune learns and writes a gains file that jaxatt broad reads back."""
+    pytest.importorskip("h5py")
+    import jaxatt
+    from jaxatt import so3
+
+    d = tmp_path / "broad"
+    d.mkdir()
+    for name, seed in (("01_undisturbed_sim", 1), ("24_disturbed_sim", 2)):
+        s, truth = jaxatt.montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=8.0, dt=0.01, seed=seed)
+        q = np.asarray(so3.quat_canonical(so3.matrix_to_quat(truth.r)))
+        _write_broad_trial(d / f"{name}.hdf5", jax_to_np(s), q, 100.0)
+    out = tmp_path / "b.json"
+    assert cli.main(["broad", "--data-dir", str(d), "--observer", "madgwick", "--json", str(out)]) == 0
+    b = json.loads(out.read_text())
+    assert set(b["trials"]) == {"01_undisturbed_sim", "24_disturbed_sim"}
+    assert set(b["groups"]) == {"undisturbed", "disturbed", "all"} and b["observer"] == "madgwick"
+    trials = jaxatt.data.broad.load(d)
+    score = jaxatt.broad_score("madgwick", None, trials)
+    assert b["trials"]["24_disturbed_sim"]["total_rmse_deg"] == pytest.approx(
+        score.trials["24_disturbed_sim"].total_rmse_deg, rel=1e-12)
+    g = tmp_path / "g.json"
+    assert cli.main(["broad-tune", "--data-dir", str(d), "--observer", "madgwick", "--steps", "2", "--out", str(g),
+                     "--quiet"]) == 0
+    saved = json.loads(g.read_text())
+    assert saved["observer"] == "madgwick" and saved["status"] == "done" and "resume" in saved
+    assert cli.main(["broad", "--data-dir", str(d), "--observer", "madgwick", "--gains", str(g)]) == 0
+    # a finished cosine-schedule fit cannot be resumed to another step count (its learning-rate schedule would
+    # change); the refusal names the setting
+    assert cli.main(["broad-tune", "--data-dir", str(d), "--observer", "madgwick", "--steps", "3", "--out", str(g),
+                     "--resume", "--quiet"]) == 2
+    assert "'steps' differs" in capsys.readouterr().err

@@ -1,0 +1,134 @@
+"""The one scan (jaxatt.engine): T estimates for T samples with estimate 0 from init, the three holds, per-step
+dt from timestamps, estimate 0 of an observer without ``output``, records decimated from estimate 0, and
+checkpointed segments giving the same result as the plain scan. Checked against hand-written loops."""
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxatt import engine, montecarlo
+from jaxatt.types import ImuSample, Interval, Observer
+
+
+class P(NamedTuple):
+    gain: jnp.ndarray
+
+
+class S(NamedTuple):
+    t: jnp.ndarray
+    x: jnp.ndarray  # an integrator of the gyro's first component, with a decay
+
+
+class O(NamedTuple):
+    t: jnp.ndarray
+    x: jnp.ndarray
+    seen: jnp.ndarray  # the sample time the step used
+
+
+def _init(p, s):
+    return S(jnp.asarray(s.t), jnp.asarray(s.gyr[0]))
+
+
+def _step(p, st, u, dt):
+    if isinstance(u, Interval):
+        g, seen = 0.5 * (u.start.gyr[0] + u.end.gyr[0]), u.start.t
+    else:
+        g, seen = u.gyr[0], u.t
+    x = st.x + dt * (g - p.gain * st.x)
+    return S(st.t + dt, x), O(st.t + dt, x, seen)
+
+
+TOY = Observer(_init, _step, "toy")
+
+
+def log(n=7, irregular=False):
+    t = np.cumsum(np.r_[0.0, np.linspace(0.1, 0.3, n - 1)]) if irregular else np.arange(n) * 0.1
+    gyr = np.stack([np.sin(np.arange(n)), np.zeros(n), np.zeros(n)], 1)
+    return ImuSample(jnp.asarray(t), jnp.asarray(gyr))
+
+
+def reference(samples, gain, hold):
+    """The alignment written out: estimate 0 = init; estimate k = one step over [t_{k-1}, t_k]."""
+    t, g = np.asarray(samples.t), np.asarray(samples.gyr)[:, 0]
+    x = [g[0]]
+    for k in range(1, len(t)):
+        dt = t[k] - t[k - 1]
+        u = {"zoh": g[k - 1], "next": g[k], "linear": 0.5 * (g[k - 1] + g[k])}[hold]
+        x.append(x[-1] + dt * (u - gain * x[-1]))
+    return np.asarray(x)
+
+
+def _x_of(t, truth, out):
+    return out.x
+
+
+@pytest.mark.parametrize("hold", ["zoh", "next", "linear"])
+@pytest.mark.parametrize("irregular", [False, True])
+def test_t_estimates_for_t_samples_with_each_hold(hold, irregular):
+    s = log(irregular=irregular)
+    out = montecarlo.run(TOY, P(jnp.asarray(0.7)), s, hold=hold)
+    assert out.x.shape == (7,)
+    np.testing.assert_allclose(np.asarray(out.x), reference(s, 0.7, hold), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(out.t), np.asarray(s.t), atol=1e-12)
+    # which sample each step used: k-1 (zoh, linear: interval start) or k (next)
+    seen = np.asarray(out.seen)[1:]
+    want = np.asarray(s.t)[1:] if hold == "next" else np.asarray(s.t)[:-1]
+    np.testing.assert_allclose(seen, want, atol=1e-12)
+
+
+def test_estimate_0_without_output_comes_from_the_state():
+    """No ``output``: fields of the step's output that the state holds (t, x) are taken from it, the others are
+    NaN until estimate 1."""
+    s = log()
+    out = montecarlo.run(TOY, P(jnp.asarray(0.7)), s)
+    assert float(out.x[0]) == pytest.approx(float(s.gyr[0, 0]))
+    assert float(out.t[0]) == 0.0 and np.isnan(float(out.seen[0]))
+    with_output = TOY._replace(output=lambda p, st: O(st.t, st.x, st.t))
+    out2 = montecarlo.run(with_output, P(jnp.asarray(0.7)), s)
+    assert float(out2.seen[0]) == 0.0
+    np.testing.assert_array_equal(np.asarray(out2.x), np.asarray(out.x))
+
+
+def test_records_start_at_estimate_0_and_segments_change_nothing():
+    """A recorded batch of two logs of different constant steps: records every 2nd estimate from estimate 0; a
+    checkpointed scan (segments of 4 steps, with per-step remat) gives the same records and the same gradient."""
+    n = 13
+    s = log(n)
+    items = {"samples": jax.tree_util.tree_map(lambda a: jnp.stack([a, a[::-1] if a.ndim == 1 else a]), s),
+             "dt": jnp.asarray([0.1, 0.05]), "truth": None}
+    items["samples"] = items["samples"]._replace(t=jnp.stack([s.t, s.t]))
+    pick = engine.records_of(_x_of, 2)
+    plain = engine.batch_fn(TOY, engine.Recorded(n - 1), pick, hold="zoh")
+    seg = engine.batch_fn(TOY, engine.Recorded(n - 1), pick, hold="zoh", segment=4, step_remat=True)
+    p = P(jnp.asarray(0.4))
+    r1 = plain(None, p, items).records
+    r2 = seg(None, p, items).records
+    assert r1.shape == (2, 1 + (n - 1) // 2)
+    full0 = reference(s, 0.4, "zoh")
+    np.testing.assert_allclose(np.asarray(r1[0]), full0[::2], rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(r2), np.asarray(r1), rtol=1e-14)
+    f1 = jax.grad(lambda q: jnp.sum(plain(None, q, items).records ** 2))(p)
+    f2 = jax.grad(lambda q: jnp.sum(seg(None, q, items).records ** 2))(p)
+    assert float(f2.gain) == pytest.approx(float(f1.gain), rel=1e-12) and float(f1.gain) != 0.0
+
+
+def test_bad_hold_and_record_interval_are_refused():
+    with pytest.raises(ValueError, match="hold"):
+        engine.check_hold("foh")
+    with pytest.raises(ValueError, match="record interval"):
+        engine.batch_fn(TOY, engine.Recorded(10), engine.records_of(lambda t, tr, o: o.x, 7))
+    with pytest.raises(ValueError, match="checkpoint"):
+        engine.segment_length(100, 300)
+
+
+def test_estimate_r_and_q_read_either_field():
+    from jaxatt import so3
+
+    q = so3.quat_canonical(jnp.asarray([0.9, 0.1, -0.3, 0.2]) / jnp.linalg.norm(jnp.asarray([0.9, 0.1, -0.3, 0.2])))
+    r = so3.quat_to_matrix(q)
+    np.testing.assert_allclose(np.asarray(engine.estimate_r({"q": q})), np.asarray(r), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(engine.estimate_q({"r": r})), np.asarray(q), atol=1e-14)
+    with pytest.raises(ValueError, match="neither"):
+        engine.estimate_q({"x": 1.0})

@@ -1,0 +1,235 @@
+"""The front door with an observer written here, in a test file, not registered: jaxatt.filter, broad_score, fit and
+monte_carlo take it like a registered one. Each result is checked against a second, independent computation
+(the numpy BROAD metric of the stored estimates, the fused simulation against a recorded log of the same run, a
+finite difference), and bad input gets one clear line."""
+import json
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxatt
+from jaxatt import montecarlo, so3
+from jaxatt.data import broad
+from jaxatt.types import ImuSample, Observer
+from broad_data import DATA, need_data
+
+
+# ---------------------------------------------------------------------------------------------------------
+# A user's observer: Mahony's explicit complementary filter with bias, sensor-to-ENU, written from scratch
+# ---------------------------------------------------------------------------------------------------------
+class MyParams(NamedTuple):
+    kp: jnp.ndarray  # 1/s
+    ki: jnp.ndarray  # 1/s^2
+
+
+class MyState(NamedTuple):
+    t: jnp.ndarray
+    q: jnp.ndarray  # (4,) sensor-to-ENU, w x y z
+    bias: jnp.ndarray  # (3,) rad/s
+
+
+class MyOut(NamedTuple):
+    t: jnp.ndarray
+    q: jnp.ndarray
+    bias: jnp.ndarray
+
+
+def my_init(p, s):
+    q = so3.quat_canonical(so3.matrix_to_quat(so3.triad(jnp.asarray(s.acc), jnp.asarray(s.mag), "ENU")))
+    return MyState(jnp.asarray(s.t, q.dtype), q, jnp.zeros(3, q.dtype))
+
+
+def my_step(p, st, s, dt):
+    r = so3.quat_to_matrix(st.q)
+    a = so3.unit(s.acc)
+    m_nav = r @ so3.unit(s.mag)
+    m_ref = so3.unit(jnp.stack([0.0 * m_nav[0], jnp.hypot(m_nav[0], m_nav[1]), m_nav[2]]))
+    e = jnp.cross(a, r.T @ jnp.array([0.0, 0.0, 1.0], a.dtype)) + jnp.cross(so3.unit(s.mag), r.T @ m_ref)
+    bias = st.bias - p.ki * e * dt
+    w = s.gyr - bias + p.kp * e
+    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1, w.dtype), w]))
+    q = q / jnp.linalg.norm(q)
+    return MyState(st.t + dt, q, bias), MyOut(st.t + dt, q, bias)
+
+
+MY_OBSERVER = Observer(my_init, my_step, "my_mahony")
+MY_PARAMS = MyParams(jnp.asarray(1.0), jnp.asarray(0.3))
+
+
+def short(trial, n):
+    """The first n samples of a BROAD trial (its rest phase and the start of the movement)."""
+    cut = lambda a: np.asarray(a)[:n]  # noqa: E731
+    return broad.Trial(trial.name, jax.tree_util.tree_map(cut, trial.samples), cut(trial.quat_true),
+                       cut(trial.movement), trial.rate_hz, trial.group)
+
+
+@pytest.fixture(scope="module")
+def trials():
+    need_data()
+    return [short(t, 14000) for t in broad.load(DATA, ["01", "24"])]
+
+
+def test_filter_runs_your_observer_and_converges():
+    """On a simulated noise-free AHRS log with a gyro bias, estimate 0 is the user's TRIAD start (exact), the
+    bias (0.57 deg/s) pulls it away by < 1.5 deg until the integral has found it, then it stays within the one-sample
+    lag of an explicit-Euler filter (|w| dt ~ 0.1 deg)."""
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=0.0, acc_noise_std=0.0, mag_noise_std=0.0, gyro_bias=(0.01, 0, 0))
+    samples, truth = montecarlo.simulate_log(scn, duration=60.0, dt=0.01)
+    est = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
+    assert est.quat.shape == (6001, 4) and est.quat.dtype == np.float64 and est.observer == "my_mahony"
+    np.testing.assert_allclose(est.quat[0], np.asarray(my_init(MY_PARAMS, jax.tree_util.tree_map(
+        lambda a: a[0], samples)).q), atol=1e-15)
+    err = np.rad2deg(np.asarray(so3.angle_error(truth.r, so3.quat_to_matrix(jnp.asarray(est.quat)))))
+    assert err[0] < 1e-6 and err.max() < 1.5 and err[-1000:].max() < 0.15, (err.max(), err[-1000:].max())
+    np.testing.assert_allclose(est.outputs["bias"][-1], [0.01, 0.0, 0.0], atol=2e-3)
+
+
+def test_broad_score_of_your_observer_equals_the_numpy_metric(trials):
+    score = jaxatt.broad_score(MY_OBSERVER, MY_PARAMS, trials)
+    assert set(score.trials) == {t.name for t in trials} and set(score.groups) == {"undisturbed", "disturbed", "all"}
+    for tr in trials:
+        est = jaxatt.filter(MY_OBSERVER, tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz,
+                            params=MY_PARAMS)
+        ref = broad.broad_errors(est.quat, tr.quat_true, tr.movement)
+        s = score.trials[tr.name]
+        for m in broad.METRICS:
+            assert getattr(s, m) == pytest.approx(ref[m], rel=1e-9), m
+        assert s.group == tr.group
+    g = score.groups["all"]
+    assert g.total_rmse_deg == pytest.approx(np.mean([s.total_rmse_deg for s in score.trials.values()]))
+    assert json.loads(json.dumps(score.to_dict()))["observer"] == "my_mahony"
+
+
+def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path):
+    out = tmp_path / "my.json"
+    res = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, lr=0.2, out=str(out))
+    assert isinstance(res.params, MyParams) and res.status == "done"
+    assert float(res.params.kp) > 0 and float(res.params.ki) > 0
+    losses = [h["train_loss"] for h in res.history]
+    assert res.best_loss < losses[0]
+    # the best loss is the score of the returned params (group-weighted mean total RMSE)
+    score = jaxatt.broad_score(MY_OBSERVER, res.params, trials)
+    want = 0.5 * (score.groups["undisturbed"].total_rmse_deg + score.groups["disturbed"].total_rmse_deg)
+    assert want == pytest.approx(res.best_loss, rel=1e-6)
+    saved = json.loads(out.read_text())
+    assert saved["observer"] == "my_mahony" and set(saved["gains"]) == {"kp", "ki"}
+    assert saved["gains"]["kp"]["value"] == pytest.approx(float(res.params.kp))
+    with pytest.raises(ValueError, match="exists"):
+        jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, out=str(out))
+
+
+def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log():
+    """Run 0 of the fused Monte Carlo equals the filter on the recorded log of the same run (same key): two paths,
+    one number."""
+    res = jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, runs=2, duration=20.0, seed=5)
+    assert res.complete and set(res.per_run) >= {"mean_angle_error_deg", "std_yaw", "std_bias"}
+    samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=20.0, dt=0.01, seed=5)
+    est = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
+    err = np.rad2deg(np.asarray(so3.angle_error(truth.r, so3.quat_to_matrix(jnp.asarray(est.quat)))))
+    assert res.per_run["final_angle_error_deg"][0] == pytest.approx(err[-1], rel=1e-9)
+    t = np.asarray(samples.t)
+    window = (t >= 20.0 * 2 / 3) & (np.arange(len(t)) >= 1)  # the window metrics count estimates 1 ... T-1
+    assert res.per_run["mean_angle_error_deg"][0] == pytest.approx(err[window].mean(), rel=1e-9)
+
+
+def test_registered_observers_through_the_front_door():
+    """Every observer set up for recorded data runs through jaxatt.filter on a simulated log and converges near the
+    truth; the frame argument rotates the estimate (NED = fixed rotation of ENU)."""
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-4, acc_noise_std=0.01, mag_noise_std=0.05, gyro_bias=(0, 0, 0))
+    samples, truth = montecarlo.simulate_log(scn, duration=40.0, dt=0.01)
+    r_true = np.asarray(truth.r)
+    for name in jaxatt.observers.registry.names(recorded=True):
+        est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
+        err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
+        assert np.all(np.isfinite(est.quat)), name
+        assert err[-500:].mean() < 3.0, (name, err[-500:].mean())
+    ned = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01, frame="NED")
+    enu = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01)
+    c = jaxatt.frames.frame_rotation("NED", "ENU")
+    np.testing.assert_allclose(ned.rotation[-1], c @ enu.rotation[-1], atol=1e-12)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m), "dt"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.0), "dt"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=float("nan")), "dt"),
+    (lambda g, a, m: jaxatt.filter("robust", g[:, :2], a, m, dt=0.01), "gyr"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a[:-1], m, dt=0.01), "acc"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, None, dt=0.01), "needs mag"),
+    (lambda g, a, m: jaxatt.filter("nope", g, a, m, dt=0.01), "unknown observer"),
+    (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01), "params are required"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, frame="XYZ"), "frame"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
+    (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
+    (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
+    (lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, params=jaxatt.observers.mahony.Params(
+        jnp.asarray(-1.0), jnp.asarray(0.0))), "kp"),
+    (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=MY_PARAMS._replace(kp=jnp.asarray(np.nan))),
+     "not finite"),
+    (lambda g, a, m: jaxatt.broad_score("robust", None, []), "empty"),
+    (lambda g, a, m: jaxatt.fit("robust", None, [1, 2]), "Trial"),
+])
+def test_bad_input_is_one_clear_line(call, match):
+    rng = np.random.default_rng(0)
+    g, a, m = rng.normal(size=(50, 3)) * 0.1, np.tile([0, 0, 9.8], (50, 1)), np.tile([0, 20, -40.0], (50, 1))
+    with pytest.raises(ValueError, match=match) as e:
+        call(g, a, m)
+    assert "\n" not in str(e.value)
+
+
+def test_non_finite_estimate_is_an_error_naming_the_sample():
+    """Gains that make the user's filter diverge: FloatingPointError with the first bad sample and time."""
+    rng = np.random.default_rng(1)
+    n = 400
+    g, a, m = rng.normal(size=(n, 3)), np.tile([0, 0, 9.8], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    bad = MyParams(jnp.asarray(1e200), jnp.asarray(1e200))
+    with pytest.raises(FloatingPointError, match=r"from sample \d+ \(t = "):
+        jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=bad)
+
+
+def test_float64_input_without_x64_warns_and_runs_float32():
+    """jaxatt never switches x64 on: float64 input with x64 off is computed in float32, with a warning; a fresh
+    process checks that importing and running jaxatt leaves the flag off."""
+    import subprocess
+    import sys
+
+    from jaxatt import api
+
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.warns(UserWarning, match="x64"):
+            assert api.compute_dtype(np.zeros(3)) == np.float32
+        assert api.compute_dtype(np.zeros(3, np.float32)) == np.float32
+        with pytest.raises(ValueError, match="x64"):
+            api.compute_dtype(np.zeros(3), dtype="float64")
+    finally:
+        jax.config.update("jax_enable_x64", True)
+    assert api.compute_dtype(np.zeros(3)) == np.float64
+    code = ("import warnings, numpy as np, jax, jaxatt\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            "    est = jaxatt.filter('mahony', np.zeros((20, 3)), np.tile([0, 0, 9.8], (20, 1)),\n"
+            "                        np.tile([0, 20, -40.0], (20, 1)), dt=0.01)\n"
+            "print(est.quat.dtype, jax.config.jax_enable_x64, any('x64' in str(x.message) for x in w))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.stdout.split() == ["float32", "False", "True"], out.stderr[-2000:]
+
+
+def test_imu_sample_is_the_users_input_type():
+    """The user's observer sees jaxatt.ImuSample with t, gyr, acc, mag in its init and step."""
+    seen = {}
+
+    def init(p, s):
+        seen["init"] = type(s)
+        return MyState(jnp.asarray(s.t), jnp.asarray([1.0, 0, 0, 0]), jnp.zeros(3))
+
+    def step(p, st, s, dt):
+        seen["step"] = type(s)
+        return st._replace(t=st.t + dt), MyOut(st.t + dt, st.q, st.bias)
+
+    jaxatt.filter(Observer(init, step, "probe"), np.zeros((3, 3)), np.ones((3, 3)), np.ones((3, 3)), dt=0.1,
+                  params=MY_PARAMS)
+    assert seen == {"init": ImuSample, "step": ImuSample}
