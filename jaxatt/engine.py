@@ -177,27 +177,25 @@ def _field(out, name):
     return out.get(name) if isinstance(out, dict) else getattr(out, name, None)
 
 
+def _estimate(out, want: str, other: str, convert):
+    v = _field(out, want)
+    if v is not None:
+        return v
+    w = _field(out, other)
+    if w is None:
+        raise ValueError(f"the observer's output has neither a field {want} nor {other} (q: w, x, y, z; r: 3x3)")
+    return convert(w)
+
+
 def estimate_r(out):
     """The sensor-to-navigation rotation (..., 3, 3) of an observer output: ``out.r``, else from ``out.q``."""
-    r = _field(out, "r")
-    if r is not None:
-        return r
-    q = _field(out, "q")
-    if q is None:
-        raise ValueError("the observer's output has neither a field r (3x3) nor q (w, x, y, z)")
-    return so3.quat_to_matrix(q)
+    return _estimate(out, "r", "q", so3.quat_to_matrix)
 
 
 def estimate_q(out):
     """The sensor-to-navigation quaternion (..., 4), (w, x, y, z), of an observer output: ``out.q``, else from
     ``out.r`` (w >= 0)."""
-    q = _field(out, "q")
-    if q is not None:
-        return q
-    r = _field(out, "r")
-    if r is None:
-        raise ValueError("the observer's output has neither a field q (w, x, y, z) nor r (3x3)")
-    return so3.quat_canonical(so3.matrix_to_quat(r))
+    return _estimate(out, "q", "r", lambda r: so3.quat_canonical(so3.matrix_to_quat(r)))
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from typing import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["value_at", "refine", "mask", "mask_from"]
+__all__ = ["value_at", "refine", "mask", "mask_from", "check"]
 
 
 def value_at(switch_times, t, *gains):
@@ -20,6 +20,22 @@ def value_at(switch_times, t, *gains):
     switch_times[i-1] <= t < switch_times[i]."""
     i = jnp.sum(jnp.asarray(t)[..., None] >= switch_times, axis=-1)
     return tuple(g[i] for g in gains)
+
+
+def check(switch_times, gains: dict, why: str = "") -> None:
+    """ValueError naming the first problem: gains (name -> (n,) array) of different lengths or not finite and
+    positive, switch_times not (n-1,) finite and increasing. ``why``: the theorem that needs positive gains."""
+    st = np.asarray(switch_times, float)
+    arrays = {k: np.asarray(v, float) for k, v in gains.items()}
+    shapes = {k: v.shape for k, v in arrays.items()}
+    n = next(iter(arrays.values())).shape
+    if any(v.ndim != 1 or v.shape != n for v in arrays.values()) or st.shape != (n[0] - 1,):
+        raise ValueError(f"{', '.join(arrays)} must be (n,) and switch_times (n-1,); got {shapes}, {st.shape}")
+    for name, v in arrays.items():
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"{name} must be finite and positive{f' ({why})' if why else ''}, got {v}")
+    if not np.all(np.isfinite(st)) or np.any(np.diff(st) <= 0):
+        raise ValueError(f"switch_times must be finite and increasing, got {st}")
 
 
 def mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:

@@ -231,8 +231,11 @@ def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0
 # ------------------------------------------------------------------------------------------------------
 # Validation at the API boundary (concrete arrays only; called by run/monte_carlo/CLI).
 # ------------------------------------------------------------------------------------------------------
-def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3) -> None:
-    """Assumption 1: I_m not parallel to I_omega_E (|sin angle| >= ``min_sin_angle``); finite, shape (3,)."""
+def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3, *, paper: str = "batista2019-ges",
+                     why: str = "the attitude is not observable from this vector and the Earth rate (C2 is "
+                                "singular)") -> None:
+    """Assumption 1 of both Batista et al. (2019) papers: I_m not parallel to I_omega_E (|sin angle| >=
+    ``min_sin_angle``); finite, shape (3,)."""
     m = np.asarray(ref_nav, float)
     w = np.asarray(earth_rate_nav, float)
     for name, v in (("ref_nav", m), ("earth_rate_nav", w)):
@@ -243,23 +246,15 @@ def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3) -> No
     s = np.linalg.norm(np.cross(m, w)) / (np.linalg.norm(m) * np.linalg.norm(w))
     if s < min_sin_angle:
         raise ValueError(
-            "Assumption 1 of batista2019-ges is violated: the reference vector is (nearly) parallel to the "
-            f"Earth's rotation rate (sin of the angle between them = {s:.2e} < {min_sin_angle}); the attitude "
-            "is not observable from this vector and the Earth rate (C2 is singular)."
+            f"Assumption 1 of {paper} is violated: the reference vector is (nearly) parallel to the Earth's "
+            f"rotation rate (sin of the angle between them = {s:.2e} < {min_sin_angle}); {why}."
         )
 
 
 def check_params(p: Params) -> None:
     """Raise ValueError with a clear message for invalid parameters (shapes, finiteness, signs, Q > 0)."""
     check_references(p.ref_nav, p.earth_rate_nav)
-    st, a1, a2 = (np.asarray(x, float) for x in (p.switch_times, p.alpha1, p.alpha2))
-    if a1.ndim != 1 or a2.shape != a1.shape or st.shape != (a1.shape[0] - 1,):
-        raise ValueError(f"alpha1, alpha2 must be (n,) and switch_times (n-1,); got {a1.shape}, {a2.shape}, {st.shape}")
-    for name, v in (("alpha1", a1), ("alpha2", a2)):
-        if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"{name} must be finite and positive (Theorem 1), got {v}")
-    if not np.all(np.isfinite(st)) or np.any(np.diff(st) <= 0):
-        raise ValueError(f"switch_times must be finite and increasing, got {st}")
+    schedule.check(p.switch_times, {"alpha1": p.alpha1, "alpha2": p.alpha2}, "Theorem 1")
     g = np.asarray(p.gain_z, float)
     if g.shape != (9, 9) or not np.all(np.isfinite(g)):
         raise ValueError(f"gain_z must be a finite (9, 9) matrix, got shape {g.shape}")
@@ -306,6 +301,19 @@ def _sanitize(u: ImuSample, gyr_last, x1) -> ImuSample:
     return u._replace(gyr=jnp.where(gyr_ok, u.gyr, gyr_last), mag=jnp.where(mag_ok, u.mag, x1))
 
 
+def vector_input(vector: str):
+    """``u -> u`` with the chosen ImuSample field ("mag" or "acc") as the vector measurement ``u.mag``."""
+    if vector not in ("mag", "acc"):
+        raise ValueError(f"vector must be 'mag' or 'acc', got {vector!r}")
+    return (lambda u: u) if vector == "mag" else (lambda u: u._replace(mag=u.acc))
+
+
+def first_inputs(p, sample):
+    """(t, gyr, vector) of the first sample in the params' dtype (``sample.mag`` is the measured vector)."""
+    dtype = p.r_hat_0.dtype
+    return jnp.asarray(sample.t, dtype), jnp.asarray(sample.gyr, dtype), jnp.asarray(sample.mag, dtype)
+
+
 @functools.lru_cache(maxsize=None)
 def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observer:
     """Build the observer (cached: the same arguments give the same object, so jitted runners are reused).
@@ -317,18 +325,11 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
     """
     if x1_init not in ("first_sample", "params"):
         raise ValueError(f"x1_init must be 'first_sample' or 'params', got {x1_init!r}")
-    if vector not in ("mag", "acc"):
-        raise ValueError(f"vector must be 'mag' or 'acc', got {vector!r}")
-
-    def _get(u: ImuSample) -> ImuSample:
-        return u if vector == "mag" else u._replace(mag=u.acc)
+    _get = vector_input(vector)
 
     def init(p: Params, sample: ImuSample) -> State:
-        sample = _get(sample)
+        t0, gyr, mag = first_inputs(p, _get(sample))
         coef = coefficients(p.ref_nav, p.earth_rate_nav)
-        dtype = p.r_hat_0.dtype
-        gyr = jnp.asarray(sample.gyr, dtype)
-        mag = jnp.asarray(sample.mag, dtype)
         if x1_init == "first_sample":
             x1 = jnp.where(jnp.all(jnp.isfinite(mag)), mag, p.x1_0)
         else:
@@ -336,7 +337,7 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         r_hat = p.r_hat_0
         # R_f(t0) must be a rotation (Theorem 3); nearest rotation when R^(0) is not one.
         r_f = so3.nearest_rotation(r_hat)
-        return State(jnp.asarray(sample.t, dtype), x1, p.x2_0, r_hat, r_f,
+        return State(t0, x1, p.x2_0, r_hat, r_f,
                      jnp.where(jnp.isfinite(gyr), gyr, 0.0), coef)
 
     def step(p: Params, s: State, sample, dt):

@@ -172,31 +172,18 @@ def default_params(ref_nav, earth_rate_nav, *, r_hat_0=None, v_hat_0=None, dtype
 # ------------------------------------------------------------------------------------------------------
 def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3) -> None:
     """Assumption 1: I_m not parallel to I_omega_E (|sin angle| >= ``min_sin_angle``); finite, shape (3,)."""
-    m = np.asarray(ref_nav, float)
-    w = np.asarray(earth_rate_nav, float)
-    for name, v in (("ref_nav", m), ("earth_rate_nav", w)):
-        if v.shape != (3,):
-            raise ValueError(f"{name} must have shape (3,), got {v.shape}")
-        if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
-            raise ValueError(f"{name} must be finite and non-zero, got {v}")
-    s = np.linalg.norm(np.cross(m, w)) / (np.linalg.norm(m) * np.linalg.norm(w))
-    if s < min_sin_angle:
-        raise ValueError(
-            "Assumption 1 of batista2019-so3 is violated: the reference vector is (nearly) parallel to the "
-            f"Earth's rotation rate (sin of the angle between them = {s:.2e} < {min_sin_angle}); I_v = I_m x "
-            "(I_m x I_wE) vanishes and the attitude is not observable from this vector and the Earth rate."
-        )
+    from .batista_ges import check_references as check
+
+    check(ref_nav, earth_rate_nav, min_sin_angle, paper="batista2019-so3",
+          why="I_v = I_m x (I_m x I_wE) vanishes and the attitude is not observable from this vector and the Earth "
+              "rate")
 
 
 def check_params(p: Params) -> None:
     """Raise ValueError with a clear message for invalid parameters (shapes, finiteness, signs)."""
     check_references(p.ref_nav, p.earth_rate_nav)
-    st, a1, a2 = (np.asarray(x, float) for x in (p.switch_times, p.alpha1, p.alpha2))
-    if a1.ndim != 1 or a2.shape != a1.shape or st.shape != (a1.shape[0] - 1,):
-        raise ValueError(f"alpha1, alpha2 must be (n,) and switch_times (n-1,); got {a1.shape}, {a2.shape}, {st.shape}")
-    if not np.all(np.isfinite(st)) or np.any(np.diff(st) <= 0):
-        raise ValueError(f"switch_times must be finite and increasing, got {st}")
-    for name in ("alpha0", "alpha1", "alpha2", "alpha3", "alpha4"):
+    schedule.check(p.switch_times, {"alpha1": p.alpha1, "alpha2": p.alpha2}, "Theorems 1-3")
+    for name in ("alpha0", "alpha3", "alpha4"):
         v = np.asarray(getattr(p, name), float)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
             raise ValueError(f"{name} must be finite and positive (Theorems 1-3), got {v}")
@@ -251,18 +238,13 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         raise ValueError(f"m_init must be 'rescaled', 'first_sample' or 'params', got {m_init!r}")
     if integrator not in ("lie", "rk4"):
         raise ValueError(f"integrator must be 'lie' or 'rk4', got {integrator!r}")
-    if vector not in ("mag", "acc"):
-        raise ValueError(f"vector must be 'mag' or 'acc', got {vector!r}")
+    from .batista_ges import first_inputs, vector_input
 
-    def _get(u: ImuSample) -> ImuSample:
-        return u if vector == "mag" else u._replace(mag=u.acc)
+    _get = vector_input(vector)
 
     def init(p: Params, sample: ImuSample) -> State:
-        sample = _get(sample)
+        t0, gyr, mag = first_inputs(p, _get(sample))
         coef = coefficients(p.ref_nav, p.earth_rate_nav)
-        dtype = p.r_hat_0.dtype
-        gyr = jnp.asarray(sample.gyr, dtype)
-        mag = jnp.asarray(sample.mag, dtype)
         ok = jnp.all(jnp.isfinite(mag)) & (jnp.sum(mag**2) > 0)
         if m_init == "params":
             m_hat = p.m_hat_0
@@ -271,7 +253,7 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         else:
             safe = jnp.where(ok, mag, p.m_hat_0)
             m_hat = safe * (jnp.linalg.norm(p.ref_nav) / jnp.linalg.norm(safe))
-        return State(jnp.asarray(sample.t, dtype), m_hat, p.v_hat_0, p.r_hat_0,
+        return State(t0, m_hat, p.v_hat_0, p.r_hat_0,
                      jnp.where(jnp.isfinite(gyr), gyr, 0.0), jnp.linalg.norm(m_hat), coef)
 
     def step(p: Params, s: State, sample, dt):

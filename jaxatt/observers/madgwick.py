@@ -70,9 +70,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ImuSample, Interval, Observer
+from ..types import ImuSample, Observer
 from . import registry
-from .mahony import nwu_to_enu
+from .mahony import nwu_to_enu, quat_from_acc_mag_triad, start_quaternion, step_inputs
 
 __all__ = ["Params", "State", "Out", "make_observer", "default_params", "check_params", "BETA_MARG", "BETA_IMU",
            "quat_from_acc_mag_triad"]
@@ -132,29 +132,9 @@ def default_params(beta: float = BETA_MARG, dtype=None) -> Params:
     return Params(jnp.asarray(beta, dtype))
 
 
-def quat_from_acc_mag_triad(acc: jax.Array, mag: jax.Array) -> jax.Array:
-    """Sensor-to-NWU quaternion (w >= 0) from one accelerometer (specific force, "up" at rest) and magnetometer
-    sample (:func:`jaxatt.so3.triad`); equals ahrs' ``ecompass(acc, mag, frame='NED')`` start to rounding."""
-    return so3.quat_canonical(so3.matrix_to_quat(so3.triad(acc, mag, "NWU")))
-
-
 # ------------------------------------------------------------------------------------------------------------
 # The update of ahrs' Madgwick.updateMARG / updateIMU
 # ------------------------------------------------------------------------------------------------------------
-def _valid(v: jax.Array) -> jax.Array:
-    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
-
-
-def _product(p, q):
-    """Hamilton product p (x) q, the component formulas of ahrs' ``Quaternion.product``."""
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
-    return (pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw)
-
-
 def _update(q, g, a, m, acc_ok, mag_ok, beta, dt):
     """One ahrs ``updateMARG`` step (``updateIMU`` where the magnetometer is missing; gyro only where the
     accelerometer is missing). ``a`` and ``m`` are finite and non-zero (safe values substituted by the caller)."""
@@ -162,14 +142,14 @@ def _update(q, g, a, m, acc_ok, mag_ok, beta, dt):
     zero = jnp.zeros((), dtype)
     q = so3.unit(q)                                            # ahrs: Quaternion(q) normalises
     # Rate of change of the quaternion from the gyroscope (eq. 12).
-    qdot = jnp.stack(_product(q, (zero, g[0], g[1], g[2])))
+    qdot = jnp.stack(so3.quat_multiply_parts(q, (zero, g[0], g[1], g[2])))
     qdot = 0.5 * qdot
     a = so3.unit(a)
     m = so3.unit(m)
     # Measured field in the earth frame (eq. 45) and its reference with the same inclination (eq. 46).
     qm = so3.unit(jnp.stack([zero, m[0], m[1], m[2]]))       # ahrs: Quaternion([0, *m]) normalises again
     qconj = (q[0], -q[1], -q[2], -q[3])
-    h = _product(q, _product(qm, qconj))
+    h = so3.quat_multiply_parts(q, so3.quat_multiply_parts(qm, qconj))
     bxx = h[1] * h[1] + h[2] * h[2]
     bx_pos = bxx > 0
     bx = jnp.where(bx_pos, jnp.sqrt(jnp.where(bx_pos, bxx, 1.0)), 0.0)
@@ -222,24 +202,13 @@ def make_observer(init_mode: str = "triad") -> Observer:
         raise ValueError(f"init_mode must be 'triad', got {init_mode!r}")
 
     def init(p: Params, sample: ImuSample) -> State:
-        if sample.acc is None or sample.mag is None:
-            raise ValueError("the Madgwick MARG filter needs acc and mag samples")
         gyr = jnp.asarray(sample.gyr)
-        acc, mag = jnp.asarray(sample.acc, gyr.dtype), jnp.asarray(sample.mag, gyr.dtype)
-        ok = _valid(acc) & _valid(mag)
-        acc_s = jnp.where(ok, acc, jnp.array([0.0, 0.0, 1.0], gyr.dtype))
-        mag_s = jnp.where(ok, mag, jnp.array([1.0, 0.0, 0.0], gyr.dtype))
-        q0 = jnp.where(ok, quat_from_acc_mag_triad(acc_s, mag_s), jnp.array([1.0, 0.0, 0.0, 0.0], gyr.dtype))
+        q0 = start_quaternion(sample)  # TRIAD in NWU; equals ahrs' ecompass(acc, mag, frame='NED') to rounding
         return State(t=jnp.asarray(sample.t, gyr.dtype), q=q0, gyr_last=jnp.where(jnp.isfinite(gyr), gyr, 0.0))
 
     def step(p: Params, s: State, sample, dt):
-        u = sample.start if isinstance(sample, Interval) else sample
         dtype = s.q.dtype
-        gyr = jnp.asarray(u.gyr, dtype)
-        gyr = jnp.where(jnp.all(jnp.isfinite(gyr)), gyr, s.gyr_last)
-        acc = jnp.asarray(u.acc, dtype) if u.acc is not None else jnp.full(3, jnp.nan, dtype)
-        mag = jnp.asarray(u.mag, dtype) if u.mag is not None else jnp.full(3, jnp.nan, dtype)
-        acc_ok, mag_ok = _valid(acc), _valid(mag)
+        gyr, acc, mag, acc_ok, mag_ok = step_inputs(sample, s.gyr_last, dtype)
         acc_s = jnp.where(acc_ok, acc, jnp.array([0.0, 0.0, 1.0], dtype))
         mag_s = jnp.where(mag_ok, mag, jnp.array([1.0, 0.0, 0.0], dtype))
         dt = jnp.asarray(dt, dtype)

@@ -194,11 +194,38 @@ def quat_from_acc_mag_triad(acc: jax.Array, mag: jax.Array) -> jax.Array:
     return so3.quat_canonical(so3.matrix_to_quat(so3.triad(acc, mag, "NWU")))
 
 
+def valid_vector(v: jax.Array) -> jax.Array:
+    """True where a sensor vector (..., 3) is usable: finite and not all zero (the C codes' "missing")."""
+    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
+
+
+def start_quaternion(sample: ImuSample, fn=quat_from_acc_mag_triad) -> jax.Array:
+    """The start of the NWU C filters (Mahony, Madgwick): ``fn(acc, mag)`` of the first sample, in the sample's
+    precision; the identity (sensor = NWU) when either vector is missing."""
+    if sample.acc is None or sample.mag is None:
+        raise ValueError("this filter needs acc and mag samples")
+    dtype = jnp.asarray(sample.gyr).dtype
+    acc, mag = jnp.asarray(sample.acc, dtype), jnp.asarray(sample.mag, dtype)
+    ok = valid_vector(acc) & valid_vector(mag)
+    acc_s = jnp.where(ok, acc, jnp.array([0.0, 0.0, 1.0], dtype))
+    mag_s = jnp.where(ok, mag, jnp.array([1.0, 0.0, 0.0], dtype))
+    return jnp.where(ok, fn(acc_s, mag_s), jnp.array([1.0, 0.0, 0.0, 0.0], dtype))
+
+
+def step_inputs(sample, gyr_last, dtype):
+    """(gyr, acc, mag, acc_ok, mag_ok) of a step of the NWU C filters: an Interval is processed with its start
+    sample; a non-finite gyro sample is replaced by ``gyr_last``; an absent acc / mag is NaN (missing)."""
+    u = sample.start if isinstance(sample, Interval) else sample
+    gyr = jnp.asarray(u.gyr, dtype)
+    gyr = jnp.where(jnp.all(jnp.isfinite(gyr)), gyr, gyr_last)
+    acc = jnp.asarray(u.acc, dtype) if u.acc is not None else jnp.full(3, jnp.nan, dtype)
+    mag = jnp.asarray(u.mag, dtype) if u.mag is not None else jnp.full(3, jnp.nan, dtype)
+    return gyr, acc, mag, valid_vector(acc), valid_vector(mag)
+
+
 # ------------------------------------------------------------------------------------------------------------
 # The update of MahonyAHRS.cpp, written in the same operation order
 # ------------------------------------------------------------------------------------------------------------
-def _valid(v: jax.Array) -> jax.Array:
-    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
 
 
 def _normalize_c(v: jax.Array, ok: jax.Array) -> jax.Array:
@@ -310,26 +337,14 @@ def make_observer(init_mode: str = "broad") -> Observer:
         raise ValueError(f"init_mode must be 'broad' or 'triad', got {init_mode!r}")
 
     def init(p: Params, sample: ImuSample) -> State:
-        if sample.acc is None or sample.mag is None:
-            raise ValueError("the Mahony filter needs acc and mag samples")
         gyr = jnp.asarray(sample.gyr)
-        acc, mag = jnp.asarray(sample.acc, gyr.dtype), jnp.asarray(sample.mag, gyr.dtype)
-        ok = _valid(acc) & _valid(mag)
-        acc_s = jnp.where(ok, acc, jnp.array([0.0, 0.0, 1.0], gyr.dtype))
-        mag_s = jnp.where(ok, mag, jnp.array([1.0, 0.0, 0.0], gyr.dtype))
-        fn = quat_from_acc_mag_broad if init_mode == "broad" else quat_from_acc_mag_triad
-        q0 = jnp.where(ok, fn(acc_s, mag_s), jnp.array([1.0, 0.0, 0.0, 0.0], gyr.dtype))
+        q0 = start_quaternion(sample, quat_from_acc_mag_broad if init_mode == "broad" else quat_from_acc_mag_triad)
         return State(t=jnp.asarray(sample.t, gyr.dtype), q=q0, integral=jnp.zeros(3, gyr.dtype),
                      gyr_last=jnp.where(jnp.isfinite(gyr), gyr, 0.0))
 
     def step(p: Params, s: State, sample, dt):
-        u = sample.start if isinstance(sample, Interval) else sample
         dtype = s.q.dtype
-        gyr = jnp.asarray(u.gyr, dtype)
-        gyr = jnp.where(jnp.all(jnp.isfinite(gyr)), gyr, s.gyr_last)
-        acc = jnp.asarray(u.acc, dtype) if u.acc is not None else jnp.full(3, jnp.nan, dtype)
-        mag = jnp.asarray(u.mag, dtype) if u.mag is not None else jnp.full(3, jnp.nan, dtype)
-        acc_ok, mag_ok = _valid(acc), _valid(mag)
+        gyr, acc, mag, acc_ok, mag_ok = step_inputs(sample, s.gyr_last, dtype)
         dt = jnp.asarray(dt, dtype)
         q, integral, w_mes = _update(s.q, s.integral, gyr, acc, mag, acc_ok, mag_ok,
                                      jnp.asarray(p.kp, dtype), jnp.asarray(p.ki, dtype), dt)

@@ -290,15 +290,6 @@ def _hold(e_prev, e_now, dec):
     return jnp.maximum(jnp.minimum(e_now, 2.0), e_prev - dec)
 
 
-def _qmul_c(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
-
-
 def _rot_c(q, v):
     """R(q) v for a unit quaternion q = (w, x, y, z): v + 2 w (u x v) + 2 u x (u x v)."""
     w, x, y, z = q
@@ -362,7 +353,7 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     th2 = (wx * wx + wy * wy + wz * wz) * (dt * dt)
     cos_h = 1.0 + th2 * (-1.0 / 8.0 + th2 * (1.0 / 384.0))
     sinc_h = (0.5 + th2 * (-1.0 / 48.0 + th2 * (1.0 / 3840.0))) * dt  # sin(th / 2) / |w|
-    q = _qmul_c((qw, qx, qy, qz), (cos_h, sinc_h * wx, sinc_h * wy, sinc_h * wz))
+    q = so3.quat_multiply_parts((qw, qx, qy, qz), (cos_h, sinc_h * wx, sinc_h * wy, sinc_h * wz))
 
     # --- inclination: acc low-passed in the quasi-inertial frame (every valid sample, so that linear accelerations
     # average out), then the rotation that brings the low-passed vector up, applied to the fraction w_acc ---
@@ -380,7 +371,7 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     inv_c = 1.0 / jnp.sqrt(cw * cw + cx * cx + cy * cy)
     cw, cx, cy = cw * inv_c, cx * inv_c, cy * inv_c
     corr = (cw, cx, cy, zero)
-    qa = qaw, qax, qay, qaz = _qmul_c(corr, q)
+    qa = qaw, qax, qay, qaz = so3.quat_multiply_parts(corr, q)
     l1x, l1y, l1z = _rot_c(corr, (l1x, l1y, l1z))
     l2x, l2y, l2z = _rot_c(corr, (l2x, l2y, l2z))
 
@@ -397,7 +388,7 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     theta = w_mag * c.k_mag * psi  # |theta| <= pi dt / tau_mag per step
     kref = w_mag * c.k_mag_ref
     mref, sref = mref + kref * (mnorm - mref), sref + kref * (sdip - sref)
-    qw, qx, qy, qz = _qmul_c((one, zero, zero, 0.5 * theta), qa)  # small rotation about z, to first order
+    qw, qx, qy, qz = so3.quat_multiply_parts((one, zero, zero, 0.5 * theta), qa)  # small rotation about z, to first order
     inv_n = 1.0 / jnp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     # the same rotation for the low-pass states: (1, 0, 0, theta / 2) / |.| turns by phi with
     # cos(phi) = (1 - theta^2 / 4) / (1 + theta^2 / 4), sin(phi) = theta / (1 + theta^2 / 4)

@@ -111,12 +111,17 @@ def errors(truth: imu.Truth, out: ges.Out):
 def config(**overrides) -> Config:
     """The Config of Section IV with ``overrides`` (field names of :class:`Config`), validated: the steady-state
     window defaults to t >= min(2400 s, 2/3 of the duration) and must start inside the run."""
-    bad = set(overrides) - set(Config._fields)
+    return make_config(sys.modules[__name__], overrides)
+
+
+def make_config(mod, overrides: dict):
+    """``mod.Config`` (this module's or batista_so3's) with ``overrides``, checked by :func:`check_config`."""
+    bad = set(overrides) - set(mod.Config._fields)
     if bad:
-        raise ValueError(f"unknown {NAME} settings {sorted(bad)} (settings: {', '.join(Config._fields)})")
-    dur = float(overrides.get("duration", DURATION))
-    overrides.setdefault("window_start", min(WINDOW_START, 2.0 * dur / 3.0))
-    cfg = Config(**overrides)
+        raise ValueError(f"unknown {mod.NAME} settings {sorted(bad)} (settings: {', '.join(mod.Config._fields)})")
+    dur = float(overrides.get("duration", mod.DURATION))
+    overrides.setdefault("window_start", min(mod.WINDOW_START, 2.0 * dur / 3.0))
+    cfg = mod.Config(**overrides)
     check_config(cfg)
     return cfg
 

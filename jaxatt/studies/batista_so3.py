@@ -101,14 +101,7 @@ def errors(truth: imu.Truth, out: so3obs.Out):
 
 def config(**overrides) -> Config:
     """The Config of Section 4 with ``overrides``, validated (see :func:`jaxatt.studies.batista_ges.config`)."""
-    bad = set(overrides) - set(Config._fields)
-    if bad:
-        raise ValueError(f"unknown {NAME} settings {sorted(bad)} (settings: {', '.join(Config._fields)})")
-    dur = float(overrides.get("duration", DURATION))
-    overrides.setdefault("window_start", min(WINDOW_START, 2.0 * dur / 3.0))
-    cfg = Config(**overrides)
-    batista_ges.check_config(cfg)
-    return cfg
+    return batista_ges.make_config(sys.modules[__name__], overrides)
 
 
 def comparable(cfg) -> "str | None":
