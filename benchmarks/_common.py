@@ -39,9 +39,9 @@ def _read(path: str) -> str:
 
 
 def _cpu_model() -> Optional[str]:
-    from jaxatt.report import _cpu_model as cpu_model  # written once, in the package
+    from jaxatt import io  # the package's provenance (written once there)
 
-    return cpu_model()
+    return io.environment()["cpu_model"]
 
 
 def _mem_total_gib() -> Optional[float]:

@@ -1,28 +1,50 @@
 """jaxatt beside VQF, ahrs and imufusion on the BROAD trials: the same trials, the same metric, and samples per
-second for each.
+second for each: every observer registered for recorded data, and the robust AHRS out of fold (2-fold
+cross-validation), its fair number to compare.
 
 Install: ``pip install -e ".[compare,data]"`` (vqf, ahrs, imufusion, h5py). Run:
-``python benchmarks/broad.py [--data-dir ../shared/data/broad] [--filters ...] [--trials ...] [--gains all]``.
-Writes benchmarks/results/broad-<host>-<UTC>.json.
+``python benchmarks/broad.py [--data-dir ../shared/data/broad] [--filters ...] [--trials ...] [--gains all]
+[--retrain-folds --steps 40 --folds-dir DIR]``. Writes benchmarks/results/broad-<host>-<UTC>.json.
 
 Filters and conventions:
 
-* **jaxatt robust AHRS** (``jaxatt.observers.robust_ahrs.run``): every trial in one batched call (padded by
-  repeating the last sample, dt per trial). Gains: the shipped ``--gains`` file (default ``all``, tuned on all 20
-  trials, so in sample here; the out-of-fold numbers are ``benchmarks/broad_crossval.py``'s). Throughput: real
-  (unpadded) samples of all trials / wall time of the warm batched call, median of ``--repeats``; float32 and
-  float64. Also one trial at a time (unbatched, float32) for comparison.
-* **jaxatt Mahony** (BROAD's implementation and gains, reproduces the published numbers): a sanity row.
+* **jaxatt robust AHRS** (``jaxatt-robust``): every trial in one batched call: ``jaxatt.engine.compiled`` of the
+  registry's recorded robust AHRS over the trials padded by repeating the last sample (dt per trial), keeping the
+  quaternion of every estimate. Gains: the shipped ``--gains`` file (default ``all``, tuned on all 20 trials, so
+  in sample here). Throughput: real (unpadded) samples of all trials / wall time of the warm batched call on
+  arrays already on the device, median of ``--repeats``; float32 (its estimates are the row's) and float64. Also
+  one trial at a time through ``jaxatt.filter`` (float32, warm: each trial's length compiles once, timed on a
+  second call; includes the front door's checks and the copy of every output to numpy).
+* **jaxatt robust AHRS out of fold** (``jaxatt-robust-oof``): the folds are :func:`jaxatt.data.broad.stratified_folds`
+  of all trials in ``--data-dir``; each selected trial is scored (``jaxatt.broad_score``, float64) with the gains
+  tuned on the OTHER fold: the shipped ``robust_broad_fold{1,2}.json`` (each file must name the fold it was tuned
+  on), or with ``--retrain-folds`` gains re-learnt first by ``jaxatt.fit("robust", None, fold, steps=--steps,
+  lr=--lr, dtype=float32, out=--folds-dir/robust_broad_fold{k}.json)`` from the untuned defaults (about 3-5 min
+  per fold on 2 CPU cores; ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false`` roughly halves a gradient on CPU).
+  Its wall time includes compiling.
+* **every other registered observer** (``jaxatt-<name>`` for each name of
+  ``jaxatt.observers.registry.names(recorded=True)``: complementary, madgwick, mahony, mekf, nlo, nlio-fg, nlio):
+  ``jaxatt.broad_score(name, None, trials)`` with its default (or shipped) gains, float64, all trials in one
+  batched scan; samples/s from a second, warm call (it includes padding the trials and the metric reduced in the
+  scan). The registered madgwick and mahony start from TRIAD as the ahrs rows do, so they should match them.
+* **jaxatt Mahony, BROAD's protocol** (``jaxatt-mahony-broad``: BROAD's implementation, start and gains;
+  reproduces the published numbers): a sanity row replaying BROAD's protocol as ``tests/test_broad.py`` does:
+  ``mahony.make_observer("broad")`` (BROAD's ``quatFromAccMag`` start; the registered "mahony" starts from TRIAD
+  instead) over each trial with sample 0 processed twice (``setState`` from sample 0, then samples 0 ... N-1),
+  ``montecarlo.log_runner``, float64, its sensor-to-NWU output rotated into ENU; wall includes compiling (one
+  per trial length).
 * **VQF online 9D**: ``vqf.VQF(Ts).updateBatch(gyr, acc, mag)["quat9D"]``; **offline VQF 9D**:
   ``vqf.offlineVQF(gyr, acc, mag, Ts, None)["quat9D"]``. VQF's quaternions are sensor-to-ENU like BROAD's.
 * **ahrs Madgwick** (beta = 0.12) and **ahrs Mahony** (BROAD's best gains k_P = 0.74, k_I = 0.0012): started
-  from TRIAD of the first acc/mag sample, stepped with ``updateMARG`` from sample 0 on (BROAD's alignment: the
-  estimate after sample k is compared with the truth at k). Madgwick's earth frame is NWU (reference field
-  (b_x, 0, b_z), gravity up), converted with q_ENU = q_z(+90 deg) (x) q_NWU; ahrs's Mahony uses the reference
-  field (0, |h_xy|, h_z), i.e. ENU directly.
+  from TRIAD of the first acc/mag sample (``jaxatt.so3.triad``), stepped with ``updateMARG`` from sample 0 on
+  (BROAD's alignment: the estimate after sample k is compared with the truth at k). Madgwick's earth frame is NWU
+  (reference field (b_x, 0, b_z), gravity up), converted with ``jaxatt.frames.change_frame(q, "ENU", "NWU")``;
+  ahrs's Mahony uses the reference field (0, |h_xy|, h_z), i.e. ENU directly.
 * **imufusion** defaults (gain 0.5, no rejection), ``AhrsSettings.sample_rate`` set to the trial's rate, earth
   convention ENU; gyro in deg/s, acc in g.
 
+The external filters' estimates are scored with :func:`jaxatt.data.broad.broad_errors` (numpy); group means as in
+``jaxatt.broad_score`` (mean of the per-trial RMSEs over the trials of each group).
 Samples/s: total samples / wall time of the filter loop only (data loading and metric excluded).
 """
 from __future__ import annotations
@@ -41,45 +63,32 @@ sys.path.insert(0, str(HERE.parent))
 import _common as C  # noqa: E402
 
 G = 9.81
-ALL_FILTERS = ("jaxatt-robust", "jaxatt-mahony", "vqf-online", "vqf-offline", "ahrs-madgwick", "ahrs-mahony",
-               "imufusion")
-ANCHOR_KEY = {"vqf-online": "VQF online 9D", "vqf-offline": "VQF offline 9D", "ahrs-madgwick": "ahrs Madgwick beta=0.12",
+#: Rows besides one ``jaxatt-<name>`` per registered recorded observer (:func:`filter_names`).
+SPECIAL = ("jaxatt-robust", "jaxatt-robust-oof", "jaxatt-mahony-broad")
+EXTERNAL = ("vqf-online", "vqf-offline", "ahrs-madgwick", "ahrs-mahony", "imufusion")
+#: The anchor of each filter (jaxatt.data.broad.ANCHORS; "ahrs Mahony (BROAD best)" = BROAD's published Mahony).
+ANCHOR_KEY = {"jaxatt-mahony-broad": "ahrs Mahony (BROAD best)", "vqf-online": "VQF online 9D",
+              "vqf-offline": "VQF offline 9D", "ahrs-madgwick": "ahrs Madgwick beta=0.12",
               "ahrs-mahony": "ahrs Mahony (BROAD best)", "imufusion": "imufusion defaults"}
 
 
-def _qmul(a, b):
+def filter_names():
+    """Every row: the robust AHRS rows, one per other registered recorded observer, BROAD's Mahony, the others."""
+    from jaxatt.observers import registry
+
+    own = tuple(f"jaxatt-{n}" for n in registry.names(recorded=True) if n != "robust")
+    return SPECIAL[:2] + own + SPECIAL[2:] + EXTERNAL
+
+
+def _triad(acc, mag, frame):
+    """Sensor-to-``frame`` quaternion (w, x, y, z), w >= 0, from one acc (up) and mag sample (numpy)."""
+    import jax.numpy as jnp
     import numpy as np
 
-    aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b), -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+    from jaxatt import so3
 
-
-def _nwu_to_enu(q):
-    import numpy as np
-
-    s = np.sqrt(0.5)
-    return _qmul(np.array([s, 0.0, 0.0, s]), q)
-
-
-def _triad(acc, mag, frame="NWU"):
-    """Sensor-to-earth quaternion (w, x, y, z) from one acc (up) and mag sample; earth frame NWU or ENU."""
-    import numpy as np
-
-    up = acc / np.linalg.norm(acc)
-    west = np.cross(up, mag)
-    west /= np.linalg.norm(west)
-    north = np.cross(west, up)
-    # rows: earth axes in sensor coordinates -> R (sensor to earth)
-    r = np.stack([north, west, up]) if frame == "NWU" else np.stack([-west, north, up])
-    w = np.sqrt(max(1e-12, 1.0 + np.trace(r))) / 2.0
-    if w > 1e-3:
-        return np.array([w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)])
-    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - rare branch
-
-    x, y, z, w = Rotation.from_matrix(r).as_quat()
-    return np.array([w, x, y, z])
+    r = so3.triad(jnp.asarray(acc, jnp.float64), jnp.asarray(mag, jnp.float64), frame)
+    return np.asarray(so3.quat_canonical(so3.matrix_to_quat(r)), np.float64)
 
 
 def run_vqf(tr, offline=False):
@@ -97,6 +106,8 @@ def run_ahrs(tr, kind):
     import numpy as np
     from ahrs.filters import Madgwick, Mahony
 
+    from jaxatt import frames
+
     g, a, m = (np.asarray(x, dtype=np.float64) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag))
     dt = 1.0 / tr.rate_hz
     f = Madgwick(frequency=tr.rate_hz, beta=0.12) if kind == "madgwick" else \
@@ -108,7 +119,7 @@ def run_ahrs(tr, kind):
         q = f.updateMARG(q, g[k], a[k], m[k], dt=dt) if kind == "madgwick" else f.updateMARG(q, g[k], a[k], m[k])
         out[k] = q
     wall = time.perf_counter() - t0
-    return (_nwu_to_enu(out) if kind == "madgwick" else out), wall
+    return (frames.change_frame(out, "ENU", "NWU") if kind == "madgwick" else out), wall
 
 
 def run_imufusion(tr):
@@ -131,90 +142,208 @@ def run_imufusion(tr):
     return out, time.perf_counter() - t0
 
 
+def robust_params(gains, dtype):
+    """Robust AHRS params: a shipped gains file by name (all, fold1, fold2) or a gains-file path."""
+    from jaxatt.data import gains as shipped
+    from jaxatt.fitting import gainsfile
+
+    if str(gains).endswith(".json") and os.path.exists(gains):
+        return gainsfile.read_params(gains, "robust", dtype=dtype)
+    return shipped.load_params(gains, dtype=dtype)
+
+
+def _pick_q(t, truth, out):
+    """The record of each estimate: the sensor-to-ENU quaternion (module level: the compiled scan is cached)."""
+    from jaxatt import engine
+
+    return engine.estimate_q(out)
+
+
 def run_jaxatt_robust(trials, gains, repeats):
-    """Batched run of all trials; returns ({name: q}, timing dict)."""
+    """All trials in one batched scan (``jaxatt.engine.compiled`` of the recorded robust AHRS over the padded
+    trials, keeping the quaternion of every estimate, as ``jaxatt.filter`` does for one recording); returns
+    (per-trial metrics of the float32 run, timing dict)."""
     import jax
     import numpy as np
 
-    from jaxatt.data import gains as shipped
-    from jaxatt.observers import robust_ahrs as ra
+    from jaxatt import engine
+    from jaxatt.data import broad
+    from jaxatt.observers import registry
 
-    p = shipped.load_params(gains) if not str(gains).endswith(".json") or not os.path.exists(gains) else \
-        ra.params_from_dict(__import__("json").load(open(gains))["gains"])
-    n = np.array([len(tr.samples.t) for tr in trials])
-    tmax = int(n.max())
-    pad = lambda x, k: np.concatenate([x, np.repeat(x[-1:], tmax - k, 0)])  # noqa: E731
-    gyr = np.stack([pad(np.asarray(tr.samples.gyr), k) for tr, k in zip(trials, n)])
-    acc = np.stack([pad(np.asarray(tr.samples.acc), k) for tr, k in zip(trials, n)])
-    mag = np.stack([pad(np.asarray(tr.samples.mag), k) for tr, k in zip(trials, n)])
-    dts = np.array([1.0 / tr.rate_hz for tr in trials])
-    timing = {"real_samples": int(n.sum()), "padded_samples": int(len(trials) * tmax)}
-    qs = None
+    entry = registry.get("robust")
+    obs = registry.recorded_observer(entry)
+    padded = broad.pad_trials(trials)
+    n = np.asarray(padded.lengths)
+    n_steps = int(padded.samples.t.shape[1]) - 1
+    timing = {"real_samples": int(n.sum()), "padded_samples": int(padded.samples.t.size)}
+    per = None
     for dtype in ("float32", "float64"):
-        args = [jax.device_put(np.asarray(x, dtype)) for x in (gyr, acc, mag, dts)]
+        p = robust_params(gains, dtype)
+        fn = engine.compiled(obs, engine.Recorded(n_steps, False), engine.records_of(_pick_q, 1), hold=entry.hold,
+                             obs_dtype=np.dtype(dtype))
+        item = jax.device_put({**broad.batch_item(padded, dtype), "truth": None})  # arrays on the device first
         t0 = time.perf_counter()
-        q = jax.block_until_ready(ra.run(p, *args, dtype=dtype)["q"])
+        q = jax.block_until_ready(fn(None, p, item).records)
         first = time.perf_counter() - t0
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            q = jax.block_until_ready(ra.run(p, *args, dtype=dtype)["q"])
+            q = jax.block_until_ready(fn(None, p, item).records)
             times.append(time.perf_counter() - t0)
         med = statistics.median(times)
         timing[dtype] = {"first_call_s": first, "times_s": times, "median_s": med,
                          "samples_per_s": float(n.sum() / med)}
         if dtype == "float32":
-            qs = {tr.name: np.asarray(q[i, : n[i]], np.float64) for i, tr in enumerate(trials)}
-    # one trial at a time (float32, warm per length: each trial length compiles once, timed on a second call)
+            q = np.asarray(q, np.float64)
+            per = {tr.name: broad.broad_errors(q[i, : n[i]], tr.quat_true, tr.movement) for i, tr in enumerate(trials)}
+    # one trial at a time through the front door (float32; each length compiles once, timed on a second call)
+    import jaxatt
+
+    p = robust_params(gains, "float32")
     tot = 0.0
     for tr in trials:
         args = [np.asarray(x, np.float32) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag)]
-        jax.block_until_ready(ra.run(p, *args, np.float32(1.0 / tr.rate_hz), dtype="float32")["q"])
+        jaxatt.filter("robust", *args, dt=1.0 / tr.rate_hz, params=p, dtype="float32")
         t0 = time.perf_counter()
-        jax.block_until_ready(ra.run(p, *args, np.float32(1.0 / tr.rate_hz), dtype="float32")["q"])
+        jaxatt.filter("robust", *args, dt=1.0 / tr.rate_hz, params=p, dtype="float32")
         tot += time.perf_counter() - t0
-    timing["unbatched_float32"] = {"total_s": tot, "samples_per_s": float(n.sum() / tot)}
-    return qs, timing
+    timing["unbatched_float32"] = {"total_s": tot, "samples_per_s": float(n.sum() / tot),
+                                   "how": "jaxatt.filter per trial, warm"}
+    return per, timing
+
+
+def run_jaxatt_mahony_broad(trials):
+    """BROAD's Mahony protocol (see the module docstring); returns (per-trial metrics, wall s incl. compile)."""
+    import jax
+    import numpy as np
+
+    from jaxatt import frames, montecarlo
+    from jaxatt.data import broad
+    from jaxatt.observers import mahony
+
+    run = montecarlo.log_runner(mahony.make_observer("broad"), "next", "float64")
+    p = mahony.default_params(*mahony.BROAD_TAGP, dtype="float64")
+    per, wall = {}, 0.0
+    for tr in trials:
+        dup = jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples)
+        t0 = time.perf_counter()
+        q_nwu = np.asarray(run(p, dup, broad.step_dt(tr.rate_hz, np.float64)).q_nwu, np.float64)
+        wall += time.perf_counter() - t0
+        per[tr.name] = broad.broad_errors(frames.change_frame(q_nwu[1:], "ENU", "NWU"), tr.quat_true, tr.movement)
+    return per, wall
+
+
+def _train_trials(payload):
+    """The trials a gains file was tuned on (jaxatt 0.1's broad-tune key, or the fitter's settings)."""
+    return payload.get("train_trials") or payload.get("settings", {}).get("train_trials") or []
+
+
+def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
+    """Out-of-fold metrics: each trial scored with the gains tuned on the other fold; returns (per-trial
+    metrics, fold info, wall s)."""
+    import jax.numpy as jnp
+
+    import jaxatt
+    from jaxatt.data import broad
+    from jaxatt.data import gains as shipped
+    from jaxatt.fitting import gainsfile
+
+    all_names = broad.resolve_trials(data_dir)
+    folds = broad.stratified_folds(all_names, broad.load_trial_info(data_dir))
+    if len(folds) != 2:
+        raise SystemExit("the out-of-fold row is written for 2 folds")
+    by_name = {tr.name: tr for tr in trials}
+    per, info, wall = {}, [], 0.0
+    for k, train in enumerate(folds, start=1):
+        test = [tr for tr in trials if tr.name not in train]
+        if retrain:
+            out_dir = pathlib.Path(folds_dir)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            path = out_dir / f"robust_broad_fold{k}.json"
+            train_trials = [by_name.get(n) for n in train]
+            if None in train_trials:
+                train_trials = broad.load(data_dir, train)
+            print(f"  fold {k}: fitting on {len(train)} trials -> {path} ...", flush=True)
+            jaxatt.fit("robust", None, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path),
+                       overwrite=True)
+        else:
+            path = pathlib.Path(str(shipped.path(f"robust_broad_fold{k}.json")))
+        payload = gainsfile.read(path)
+        if sorted(_train_trials(payload)) != sorted(train):
+            raise SystemExit(f"{path} was tuned on {_train_trials(payload)}, not on fold {k} = {train}")
+        fold = {"fold": k, "train": train, "test": [tr.name for tr in test], "gains": str(path)}
+        if test:
+            res = jaxatt.broad_score("robust", gainsfile.read_params(path, "robust", dtype=jnp.float64), test)
+            wall += res.wall_s
+            for name, sc in res.trials.items():
+                per[name] = {**{m: getattr(sc, m) for m in broad.METRICS}, "gains": path.name}
+        info.append(fold)
+    return {tr.name: per[tr.name] for tr in trials}, info, wall
+
+
+def _groups(per):
+    """Group means of per-trial metrics, as jaxatt.broad_score computes them."""
+    from jaxatt.api import TrialScore, group_means
+    from jaxatt.data import broad
+
+    rows = {n: TrialScore(*(v[m] for m in broad.METRICS), v["group"]) for n, v in per.items()}
+    return {g: s._asdict() for g, s in group_means(rows).items()}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data-dir", default=str(C.REPO_ROOT.parent / "shared" / "data" / "broad"))
-    ap.add_argument("--filters", nargs="+", default=list(ALL_FILTERS), choices=ALL_FILTERS)
-    ap.add_argument("--trials", nargs="*", default=None)
+    ap.add_argument("--filters", nargs="+", default=None,
+                    help="rows to run (default all): jaxatt-robust, jaxatt-robust-oof, jaxatt-<registered name>, "
+                         f"jaxatt-mahony-broad, {', '.join(EXTERNAL)}")
+    ap.add_argument("--trials", nargs="*", default=None, help="names, numbers, groups or fold1/fold2 (default all)")
     ap.add_argument("--gains", default="all", help="robust AHRS gains: shipped name (all, fold1, fold2) or a path")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--retrain-folds", action="store_true",
+                    help="re-learn the fold gains of the out-of-fold row first (jaxatt.fit, minutes per fold)")
+    ap.add_argument("--steps", type=int, default=40, help="--retrain-folds: Adam steps")
+    ap.add_argument("--lr", type=float, default=0.05, help="--retrain-folds: learning rate")
+    ap.add_argument("--folds-dir", default=".", help="--retrain-folds: where robust_broad_fold{k}.json are written")
     ap.add_argument("--out", default=str(C.RESULTS_DIR))
     args = ap.parse_args(argv)
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import numpy as np
-
-    from jaxatt import broad_tune as B
+    import jaxatt
     from jaxatt.data import broad
 
+    known = filter_names()
+    args.filters = list(args.filters or known)
+    bad = [f for f in args.filters if f not in known]
+    if bad:
+        ap.error(f"unknown filters {bad}; known: {', '.join(known)}")
     meta = C.metadata(sys.argv if argv is None else ["broad.py"] + list(argv))
-    names = B.resolve_trials(args.data_dir, args.trials)
-    info = broad.load_trial_info(args.data_dir)
-    trials = [broad.load_trial(pathlib.Path(args.data_dir) / f"{n}.hdf5") for n in names]
+    names = broad.resolve_trials(args.data_dir, args.trials)
+    trials = broad.load(args.data_dir, names)
     n_samples = int(sum(len(tr.samples.t) for tr in trials))
     results = {}
     for flt in args.filters:
         print(f"{flt} ...", flush=True)
         per, wall, extra = {}, 0.0, {}
         if flt == "jaxatt-robust":
-            qs, extra = run_jaxatt_robust(trials, args.gains, args.repeats)
+            per, extra = run_jaxatt_robust(trials, args.gains, args.repeats)
             wall = n_samples / extra["float32"]["samples_per_s"]
-        elif flt == "jaxatt-mahony":
-            ev = B.broad_eval(args.data_dir, "mahony", trials=names, verbose=False,
-                              loaded={tr.name: tr for tr in trials})
-            per = {n: {k: ev["trials"][n][k] for k in broad.METRICS} for n in names}
-            qs, wall = None, ev["wall_s"]
-            extra = {"note": "wall includes compile"}
+        elif flt == "jaxatt-robust-oof":
+            per, folds, wall = run_jaxatt_robust_oof(args.data_dir, trials, retrain=args.retrain_folds,
+                                                     steps=args.steps, lr=args.lr, folds_dir=args.folds_dir)
+            extra = {"folds": folds, "note": "wall includes compile; each trial scored with the other fold's gains"}
+        elif flt == "jaxatt-mahony-broad":
+            per, wall = run_jaxatt_mahony_broad(trials)
+            extra = {"note": "BROAD's protocol (start, sample 0 twice), float64; wall includes compile"}
+        elif flt.startswith("jaxatt-"):  # a registered observer through the front door
+            name = flt[len("jaxatt-"):]
+            sc = jaxatt.broad_score(name, None, trials)
+            warm = jaxatt.broad_score(name, None, trials).wall_s
+            per = {n: {m: getattr(v, m) for m in broad.METRICS} for n, v in sc.trials.items()}
+            wall, extra = warm, {"first_call_s": sc.wall_s, "note": "warm jaxatt.broad_score call (padding, scan, "
+                                 "metric), float64, default gains"}
         else:
-            qs = {}
             for tr in trials:
                 if flt.startswith("vqf"):
                     q, w = run_vqf(tr, offline=flt == "vqf-offline")
@@ -222,30 +351,32 @@ def main(argv=None) -> int:
                     q, w = run_ahrs(tr, flt.split("-")[1])
                 else:
                     q, w = run_imufusion(tr)
-                qs[tr.name], wall = q, wall + w
-        if qs is not None:
-            per = {tr.name: broad.broad_errors(qs[tr.name], tr.quat_true, tr.movement) for tr in trials}
-        per = {n: {**per[n], "group": B._group_of(n, info)} for n in names}
-        groups = B._summaries(per, info)
-        results[flt] = {"trials": per, "groups": groups, "wall_s": wall, "samples_per_s": n_samples / wall, **extra}
-        print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items())
-              + f"  ({n_samples / wall:.3g} samples/s)", flush=True)
+                per[tr.name] = broad.broad_errors(q, tr.quat_true, tr.movement)
+                wall += w
+        per = {tr.name: {**per[tr.name], "group": tr.group or broad.group_of(tr.name)} for tr in trials}
+        groups = _groups(per)
+        timed = wall > 0 and flt != "jaxatt-robust-oof"  # the out-of-fold row's wall is scoring + compiling
+        results[flt] = {"trials": per, "groups": groups, "wall_s": wall,
+                        "samples_per_s": n_samples / wall if timed else None, **extra}
+        rate = f"  ({n_samples / wall:.3g} samples/s)" if timed else ""
+        print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items()) + rate, flush=True)
 
     print(f"\nBROAD, {len(names)} trials, {n_samples} samples: mean total RMSE (deg)")
-    print(f"{'filter':16s} {'undisturbed':>12s} {'disturbed':>10s} {'anchor':>14s} {'samples/s':>11s}")
+    print(f"{'filter':21s} {'undisturbed':>12s} {'disturbed':>10s} {'anchor':>14s} {'samples/s':>11s}")
     for flt, r in results.items():
-        a = B.ANCHORS.get(ANCHOR_KEY.get(flt, ""), None)
+        a = broad.ANCHORS.get(ANCHOR_KEY.get(flt, ""), None)
         anc = f"{a['undisturbed']:.2f} / {a['disturbed']:.2f}" if a else ""
         g = r["groups"]
-        print(f"{flt:16s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
-              f"{g.get('disturbed', {}).get('total_rmse_deg', float('nan')):10.2f} {anc:>14s} {r['samples_per_s']:11.3g}")
+        sps = f"{r['samples_per_s']:11.3g}" if r["samples_per_s"] else f"{'-':>11s}"
+        print(f"{flt:21s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
+              f"{g.get('disturbed', {}).get('total_rmse_deg', float('nan')):10.2f} {anc:>14s} {sps}")
     if "jaxatt-robust" in results:
         t = results["jaxatt-robust"]
         print(f"jaxatt robust, all trials batched: {t['float32']['samples_per_s']:.3g} samples/s float32, "
               f"{t['float64']['samples_per_s']:.3g} float64; one trial at a time {t['unbatched_float32']['samples_per_s']:.3g}"
               f" (load average {os.getloadavg()[0]:.1f})")
     path = C.write_results("broad", {"settings": vars(args), "n_samples": n_samples, "trials": names,
-                                     "results": results, "anchors": B.ANCHORS, "data": broad.ATTRIBUTION,
+                                     "results": results, "anchors": broad.ANCHORS, "data": broad.ATTRIBUTION,
                                      "load_avg_at_end": os.getloadavg()}, out_dir=args.out, meta=meta)
     print(f"results written to {path}")
     return 0

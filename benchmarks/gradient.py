@@ -1,9 +1,11 @@
-"""Cost of one gradient of the tuning loss (jaxatt.tune) against one forward pass, and its memory.
+"""Cost of one gradient of the tuning loss (jaxatt.fit on a study) against one forward pass, and its memory.
 
-Measured, per experiment (batista-ges, batista-so3), for a horizon T (s, at 100 Hz) and B Monte Carlo seeds:
+Measured, per study (batista-ges, batista-so3), for a horizon T (s, at 100 Hz) and B Monte Carlo seeds:
 
-* ``forward``: the loss alone, ``jit(lambda theta, keys: problem.objective(theta, keys)[0])``: the fused
-  simulator + observer scan of ``monte_carlo`` with the loss accumulated on the fly.
+* ``forward``: the loss alone, ``jit(lambda theta, keys: objective(theta, keys)[0])`` with the objective the
+  fitter builds (``jaxatt.fitting.fitter.simulated_objective``: the study's default loss over its steady window,
+  every gain the registry tunes by default, ``jaxatt.fitting.parametrize.for_gains``): the fused simulator +
+  observer scan of ``monte_carlo`` with the loss accumulated on the fly.
 * ``grad``: ``jit(value_and_grad(...))`` of the same function, reverse mode through the whole scan, with the
   scan split into ``jax.checkpoint``-ed segments (``--checkpoint``, default "auto": about sqrt(T) steps, in
   multiples of the 1000-step noise block; 1000 steps for 360,000) or without checkpointing (``off``).
@@ -28,7 +30,6 @@ import argparse
 import json
 import os
 import pathlib
-import resource
 import subprocess
 import sys
 import time
@@ -67,16 +68,24 @@ def measure(experiment: str, duration: float, runs: int, mode: str, checkpoint, 
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from jaxatt import montecarlo
-    from jaxatt import tune as T
+    from jaxatt import montecarlo, studies
+    from jaxatt.fitting import fitter, losses
+    from jaxatt.fitting import parametrize as P
+    from jaxatt.observers import registry
 
     rss0 = _rss_now_mib()
-    prob = T.make_problem(experiment, duration=duration, checkpoint=checkpoint, step_remat=step_remat)
+    # the objective jaxatt.fit(None, None, study) builds: default gains, the study's loss and windows
+    setup = studies.get(experiment).setup(duration=duration)
+    bound = P.for_gains(registry.get(setup.entry).gains).bind(setup.params)
+    (ss, se), (ts, te) = setup.loss_windows["steady"], setup.loss_windows["transient"]
+    spec = losses.loss_spec(setup.loss_kind, steady_start=ss, steady_end=se, transient_start=ts, transient_end=te)
+    objective = fitter.simulated_objective(setup, bound, spec, checkpoint=checkpoint, step_remat=step_remat,
+                                           devices=1)
     keys = montecarlo.run_keys(0, np.arange(runs))
-    theta = prob.theta0()
+    theta = bound.init()
 
     def loss(th, k):
-        return prob.objective(th, k)[0]
+        return objective(th, k)[0]
 
     fn = jax.jit(loss) if mode == "forward" else jax.jit(jax.value_and_grad(loss))
     t0 = time.perf_counter()
@@ -104,15 +113,16 @@ def measure(experiment: str, duration: float, runs: int, mode: str, checkpoint, 
     gnorm = None
     if mode == "grad":
         gnorm = float(np.sqrt(sum(float(np.sum(np.square(np.asarray(g)))) for g in jax.tree_util.tree_leaves(out[1]))))
-    n_steps = int(round(duration / prob.setup.dt))
+    n_steps = int(round(duration / setup.dt))
     return {
         "experiment": experiment, "mode": mode, "duration_s": duration, "steps": n_steps, "runs": runs,
-        "checkpoint_segment": prob.checkpoint_segment, "step_remat": step_remat, "compile_s": compile_s,
+        "checkpoint_segment": losses.segment_length(n_steps, checkpoint), "step_remat": step_remat,
+        "compile_s": compile_s,
         "wall_s": min(times), "cpu_s": min(cpu), "calls": len(times), "times_s": times, "cpu_times_s": cpu,
         "run_steps_per_s": runs * n_steps / min(times),
         "loss": value, "grad_norm": gnorm, "finite": bool(np.isfinite(value) and (gnorm is None or np.isfinite(gnorm))),
         "rss_start_mib": rss0, "rss_after_compile_mib": rss_compiled, "peak_rss_after_compile_mib": peak_compiled,
-        "peak_rss_mib": C.peak_rss_mib(), "n_tunable": prob.parametrization.n_free(), "loadavg_1m_end": _load(),
+        "peak_rss_mib": C.peak_rss_mib(), "n_tunable": bound.n_free(), "loadavg_1m_end": _load(),
         **mem,
     }
 
@@ -203,8 +213,8 @@ def main(argv=None) -> int:
                                 "xla_temp_mib", "peak_rss_mib", "rss_after_compile_mib"], title="memory vs horizon")
     data = {"settings": {"experiments": args.experiments, "duration_s": args.duration, "runs": args.runs,
                          "checkpoint": args.checkpoint, "repeats": args.repeats, "dt_s": 0.01,
-                         "grad": "jit(value_and_grad(loss)) in theta (all gains of jaxatt.parametrize.GAINS), "
-                                 "float64, reverse mode through the whole scan",
+                         "grad": "jit(value_and_grad(loss)) in theta (the gains the registry tunes by default, "
+                                 "jaxatt.fitting.parametrize.for_gains), float64, reverse mode through the whole scan",
                          "forward": "jit(loss): the same scan without the gradient",
                          "rss": "ru_maxrss of a fresh subprocess per measurement (includes the compiler's peak)"},
             "summary": summary, "rows": rows, "scaling": scaling, "wall_s": time.perf_counter() - t_start}

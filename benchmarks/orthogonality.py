@@ -1,7 +1,8 @@
 """Orthogonality error ||R^T R - I||_F of the batista-so3 attitude estimate after many steps, for the RKMK-4
 step on SO(3) (``integrator="lie"``) and the paper's plain RK4 (``integrator="rk4"``), in float32 and float64.
 
-One noisy run of Section 4's slow scenario (observer only, on a simulated log: 1e6 steps = 10^4 s at 100 Hz),
+One noisy run of Section 4's slow scenario (observer only, on a simulated log: 1e6 steps = 10^4 s at 100 Hz, run
+through the engine's scan with a reducer that keeps the largest and the last error, so no trajectory is stored),
 also reporting |m^| / |I_m| - 1 (eq. 9 preserves |m^|). Usage::
 
     python benchmarks/orthogonality.py [--steps 1000000]
@@ -19,40 +20,46 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from _common import metadata, print_table, write_results  # noqa: E402
+from _common import print_table, write_results  # noqa: E402
 
-from jaxatt import montecarlo, so3  # noqa: E402
-from jaxatt.experiments import batista_so3 as E  # noqa: E402
+from jaxatt import engine, montecarlo, so3  # noqa: E402
+from jaxatt.studies import batista_so3 as E  # noqa: E402
+
+
+# A reducer of the one scan (jaxatt.engine): the largest and the last ||R^T R - I||_F and the last |m^| over the
+# estimates of a run (module-level functions: the compiled runner is cached on them).
+def _orth_init(t0, truth0, out0):
+    e = so3.orthogonality_error(out0.r)
+    return (e, e, jnp.linalg.norm(out0.m_hat)), None
+
+
+def _orth_update(acc, t, truth, out):
+    e = so3.orthogonality_error(out.r)
+    return (jnp.maximum(acc[0], e), e, jnp.linalg.norm(out.m_hat)), None
+
+
+def _orth_finish(acc):
+    return {"max": acc[0], "final": acc[1], "m_norm_final": acc[2]}
+
+
+ORTHOGONALITY = engine.Reducer(_orth_init, _orth_update, _orth_finish)
 
 
 def measure(steps: int, integrator: str, dtype, samples):
     cfg = E.Config(integrator=integrator)
-    obs = E.observer(cfg)
     p = E.params(cfg, dtype=dtype)
-    s = jax.tree_util.tree_map(lambda a: None if a is None else jnp.asarray(a, dtype), samples)
-    first = jax.tree_util.tree_map(lambda a: a[0], s)
-
-    @jax.jit
-    def go(p, s):
-        st = obs.init(p, first)
-        nxt = jax.tree_util.tree_map(lambda a: a[1:], s)
-
-        def body(st, u):
-            st, out = obs.step(p, st, u, jnp.asarray(cfg.dt, dtype))
-            return st, (so3.orthogonality_error(out.r), jnp.linalg.norm(out.m_hat))
-
-        cur = jax.tree_util.tree_map(lambda a: a[:-1], s)
-        st, (orth, mnorm) = jax.lax.scan(body, st, cur)
-        return st, orth, mnorm
-
+    s = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype)[None], samples)  # one run, all in ``dtype``
+    fn = engine.compiled(E.observer(cfg), engine.Recorded(steps, False), ORTHOGONALITY, hold=cfg.hold,
+                         obs_dtype=dtype)
+    item = {"samples": s, "dt": jnp.asarray(cfg.dt, dtype)[None], "truth": None}
     t0 = time.perf_counter()
-    st, orth, mnorm = go(p, s)
-    orth = np.asarray(orth, float)
+    res = jax.block_until_ready(fn(None, p, item).summary)
     wall = time.perf_counter() - t0
     mref = float(np.linalg.norm(np.asarray(cfg.reference_nT)))
     return {"integrator": integrator, "dtype": np.dtype(dtype).name, "steps": steps,
-            "orthogonality_error_final": float(orth[-1]), "orthogonality_error_max": float(orth.max()),
-            "m_norm_rel_error_final": float(abs(float(mnorm[-1]) / mref - 1.0)), "wall_s_incl_compile": wall}
+            "orthogonality_error_final": float(res["final"][0]), "orthogonality_error_max": float(res["max"][0]),
+            "m_norm_rel_error_final": float(abs(float(res["m_norm_final"][0]) / mref - 1.0)),
+            "wall_s_incl_compile": wall}
 
 
 def main():

@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     from jaxatt import montecarlo
-    from jaxatt.experiments import batista_ges as E
+    from jaxatt.studies import batista_ges as E
 
     meta = C.metadata(sys.argv if argv is None else ["sharding.py"] + list(argv))
     cfg = E.Config(duration=args.duration)

@@ -3,13 +3,15 @@ batista-ges experiment, in run-steps per second (batch x steps / wall time), aga
 
 Measured:
 
-* ``fused``: ``jaxatt.montecarlo._make_batch_fn`` (the function ``monte_carlo`` jits for each chunk) built
-  once per (dtype, batch), compiled ahead of time (compile time reported), run once to warm up, then timed
-  (best of several calls). One call = one vmapped batch of B runs (``monte_carlo`` itself splits runs into
-  chunks of 250 by default). dtypes: ``float64``; ``float32`` = observer in float32, truth and noise in
-  float64 (what ``monte_carlo(dtype=float32)`` does with x64 enabled); ``float32-x64off`` = everything
-  float32 (x64 disabled, in a subprocess).
-* ``observer_only``: the GES observer alone over a pre-generated log (``montecarlo.run``'s scan), batch 1.
+* ``fused``: the batch function ``monte_carlo`` runs for each chunk: ``jaxatt.engine.compiled`` of the study's
+  observer with an ``engine.Simulated`` source and ``montecarlo.metrics_reducer`` (one device, no traces),
+  compiled ahead of time per (dtype, batch) (compile time reported), run once to warm up, then timed (best of
+  several calls). One call = one vmapped batch of B runs (``monte_carlo`` itself splits runs into chunks of 250
+  by default). dtypes: ``float64``; ``float32`` = observer in float32, truth and noise in float64 (what
+  ``monte_carlo(dtype=float32)`` does with x64 enabled); ``float32-x64off`` = everything float32 (x64
+  disabled, in a subprocess).
+* ``observer_only``: the GES observer alone over a pre-generated log (``montecarlo.log_runner``, the scan of
+  ``montecarlo.run``), batch 1.
 * ``numpy``: benchmarks/numpy_reference.py at batch 1, fused truth + sensors + observer loop, and observer
   alone over a log.
 * ``api``: wall time of two identical ``monte_carlo`` calls (small), which shows the per-call compile.
@@ -56,7 +58,7 @@ def _load():
 # JAX measurements
 # ----------------------------------------------------------------------------------------------------------
 def _experiment():
-    from jaxatt.experiments import batista_ges as exp
+    from jaxatt.studies import batista_ges as exp
 
     return exp
 
@@ -68,22 +70,27 @@ def measure_fused(batch: int, n_steps: int, dtype: str, *, repeats: int, min_tim
 
     from jaxatt import montecarlo
 
+    from jaxatt import engine
+
     exp = _experiment()
     cfg = exp.Config(duration=n_steps * exp.DT)
-    obs_dtype, sim_dtype = montecarlo._dtypes(jnp.float32 if dtype.startswith("float32") else jnp.float64)
-    fn = montecarlo._make_batch_fn(
-        exp.scenario(cfg), exp.observer(cfg), exp.params(cfg), n_steps=n_steps, dt=cfg.dt, errors_fn=exp.errors,
-        window_start=0.0, hold=cfg.hold, trace_every=0, trace_fn=montecarlo.default_trace, obs_dtype=obs_dtype,
-        sim_dtype=sim_dtype)
-    jitted = jax.jit(lambda k: fn(k)[:2])  # exactly what monte_carlo jits
+    # what monte_carlo(dtype=...) compiles for one chunk on one device: the observer in obs_dtype, truth and
+    # sensors in the widest float available, metrics reduced in the scan (window from t = 0), no traces
+    obs_dtype = jnp.dtype(jnp.float32 if dtype.startswith("float32") else jnp.float64)
+    sim_dtype = jnp.dtype(jnp.result_type(float))
+    source = engine.Simulated(n_steps, cfg.dt, sim_dtype)
+    reducer = montecarlo.metrics_reducer(exp.errors, 0.0, (), 0, None, 0.5 * cfg.dt)
+    fn = engine.compiled(exp.observer(cfg), source, reducer, None, hold=cfg.hold, obs_dtype=obs_dtype)
+    scn, params = exp.scenario(cfg), exp.params(cfg)
     keys = montecarlo.run_keys(0, np.arange(batch))
     t0 = time.perf_counter()
-    compiled = jitted.lower(keys).compile()
+    compiled = fn.lower(scn, params, keys).compile()
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    summary, _ = jax.block_until_ready(compiled(keys))
+    summary = jax.block_until_ready(compiled(scn, params, keys)).summary
     first_s = time.perf_counter() - t0
-    tm = C.time_it(lambda: compiled(keys), repeats=repeats, min_time=min_time, sync=jax.block_until_ready)
+    tm = C.time_it(lambda: compiled(scn, params, keys), repeats=repeats, min_time=min_time,
+                   sync=jax.block_until_ready)
     final_angle = np.asarray(summary["final_angle_error_deg"], float)
     return {
         "kind": "fused", "dtype": dtype, "obs_dtype": str(obs_dtype), "sim_dtype": str(sim_dtype),
@@ -124,8 +131,8 @@ def measure_observer_only(n_steps: int, dtype: str, *, repeats: int, min_time: f
     t, gyr, mag = _log(n_steps)
     samples = ImuSample(t=jnp.asarray(t, dt_), gyr=jnp.asarray(gyr, dt_), mag=jnp.asarray(mag, dt_))
     p = exp.params(cfg, dtype=dt_)
-    dts = jnp.full(n_steps, cfg.dt, dt_)
-    go = montecarlo._run_jit(exp.observer(cfg), cfg.hold)  # what montecarlo.run jits
+    dts = jnp.asarray(cfg.dt, dt_)
+    go = montecarlo.log_runner(exp.observer(cfg), cfg.hold, dt_)  # what montecarlo.run runs
     t0 = time.perf_counter()
     compiled = go.lower(p, samples, dts).compile()
     compile_s = time.perf_counter() - t0

@@ -13,7 +13,7 @@ __version__ = "0.2.0"
 
 from . import data, engine, frames, integrate, metrics, montecarlo, observers, sim, so3  # noqa: E402
 from .api import BroadScore, Estimate, broad_score, filter, monte_carlo  # noqa: E402
-from .fit.fitter import FitResult, fit  # noqa: E402
+from .fitting.fitter import FitResult, fit  # noqa: E402
 from .types import ImuSample, Interval, Observer, VectorSample  # noqa: E402
 
 __all__ = ["filter", "broad_score", "fit", "monte_carlo", "Estimate", "BroadScore", "FitResult", "ImuSample",

@@ -110,7 +110,7 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
         if params is None:
             params = entry.params(dtype=dtype)
         elif isinstance(params, str):
-            from .fit import gainsfile
+            from .fitting import gainsfile
 
             params = gainsfile.read_params(params, entry, dtype=dtype)
         if entry.check is not None:

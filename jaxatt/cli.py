@@ -1,5 +1,5 @@
 """Command line: ``jaxatt filter``, ``reproduce``, ``simulate``, ``tune``, ``evaluate``, ``broad``, ``broad-tune``,
-``excitation``. Thin: it parses, calls the library (:mod:`jaxatt.api`, :mod:`jaxatt.studies`, :mod:`jaxatt.fit`),
+``excitation``. Thin: it parses, calls the library (:mod:`jaxatt.api`, :mod:`jaxatt.studies`, :mod:`jaxatt.fitting`),
 prints and writes files.
 
 Every command enables float64 in JAX (the library never does): simulated truth and sensors are float64, observers
@@ -344,7 +344,7 @@ def _finish_study(payload: dict) -> int:
 # tune / evaluate
 # ------------------------------------------------------------------------------------------------------------
 def _tune(args) -> int:
-    from .fit import fitter
+    from .fitting import fitter
 
     config = {"duration": args.duration} if args.duration is not None else None
     res = fitter.fit(None, None, args.experiment, steps=args.steps, train_runs=args.train_runs, val_runs=args.val_runs,
@@ -365,7 +365,7 @@ def _fit_status(res) -> int:
 
 def _evaluate(args) -> int:
     from . import io, studies
-    from .fit import gainsfile
+    from .fitting import gainsfile
 
     study = studies.get(args.experiment)
     io.check_output_path(args.json, "--json")
@@ -379,7 +379,7 @@ def _evaluate(args) -> int:
                             f"({d.get('study') or 'recorded data'}), not of {study.name}")
         params = gainsfile.apply(s.params, d["gains"], source=f"--gains {args.gains}")
         source = args.gains
-        tun = d.get("settings", d.get("tuning", {}))
+        tun = d.get("settings", {})
         if tun.get("seed") == args.seed:
             used = set(range(*tun.get("train_run_indices", [0, 0]))) | set(range(*tun.get("val_run_indices", [0, 0])))
             if used & set(range(args.runs)):
@@ -433,7 +433,7 @@ def _broad(args) -> int:
 
 def _broad_tune(args) -> int:
     from .data import broad
-    from .fit import fitter
+    from .fitting import fitter
 
     trials = broad.load(args.data_dir, args.trials)
     res = fitter.fit(args.observer, None, trials, steps=args.steps, lr=args.lr, start=args.init_gains, out=args.out,

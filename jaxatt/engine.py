@@ -122,7 +122,10 @@ class Simulated(NamedTuple):
         nb = imu.noise_block(key, block_index, self.sim_dtype, scn.n_channels)
         return nb if length == BLOCK else jax.lax.dynamic_slice_in_dim(nb, offset, length, 0)
 
-    def advance(self, scn, r, k, noise):
+    def constants(self, scn, key):
+        return ()
+
+    def advance(self, scn, r, k, noise, const):
         """(src_state, sample, truth, t, dt) of step k (from t_k to t_{k+1})."""
         t_k = k.astype(self.sim_dtype) * self.dt
         t_next = (k + 1).astype(self.sim_dtype) * self.dt
@@ -163,11 +166,18 @@ class Recorded(NamedTuple):
         xs = {"samples": jax.tree_util.tree_map(take, item["samples"])}
         if item.get("truth") is not None:
             xs["truth"] = jax.tree_util.tree_map(take, item["truth"])
-        xs["dt"] = take(item["dt"]) if self.per_step_dt else jnp.broadcast_to(item["dt"], (length,))
+        if self.per_step_dt:
+            xs["dt"] = take(item["dt"])
         return xs
 
-    def advance(self, world, src_state, k, x):
-        return src_state, x["samples"], x.get("truth"), x["samples"].t, x["dt"]
+    def constants(self, world, item):
+        """Per-run constants of the scan (a constant dt stays outside the per-step inputs, so what an observer
+        derives from it, e.g. its discrete coefficients, is computed once per run, not once per step)."""
+        return () if self.per_step_dt else item["dt"]
+
+    def advance(self, world, src_state, k, x, const):
+        dt = x["dt"] if self.per_step_dt else const
+        return src_state, x["samples"], x.get("truth"), x["samples"].t, dt
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -317,21 +327,22 @@ def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh",
             acc0, rec0 = reducer.init(t0, truth0, out0)
             return (src, s0, st0, acc0), rec0
 
-        def step_one(k, src, s_prev, st, acc, x):
-            src, s_next, truth, t_next, dt = source.advance(world, src, k, x)
+        def step_one(k, src, s_prev, st, acc, x, const):
+            src, s_next, truth, t_next, dt = source.advance(world, src, k, x, const)
             s_next = cast_floats(s_next, obs_dtype)
             u = s_prev if hold == "zoh" else (s_next if hold == "next" else Interval(s_prev, s_next))
             st, out = observer.step(p, st, u, jnp.asarray(dt, obs_dtype))
             acc, rec = reducer.update(acc, t_next, truth, out)
             return src, s_next, st, acc, rec
 
-        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1), out_axes=-1)
+        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1, -1), out_axes=-1)
         if step_remat:
             step_b = jax.checkpoint(step_b, prevent_cse=False)
+        consts = jax.vmap(lambda item: source.constants(world, item), out_axes=-1)(batch)
 
         def step(carry, x):
             k = carry[0]
-            src, s, st, acc, rec = step_b(*carry, x)
+            src, s, st, acc, rec = step_b(*carry, x, consts)
             return (k + 1, src, s, st, acc), rec
 
         def run_steps(carry, block_index, offset, length):

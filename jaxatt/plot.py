@@ -278,7 +278,7 @@ def euler_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
 # ------------------------------------------------------------------------------------------------------
 def _history_columns(history) -> Dict[str, np.ndarray]:
     """{step, train_<m>, val_<m>, ...} as float arrays (NaN where a step has no value) from a list of per-step
-    dicts (:attr:`jaxatt.fit.fitter.FitResult.history`) or a dict of equal-length lists."""
+    dicts (:attr:`jaxatt.fitting.fitter.FitResult.history`) or a dict of equal-length lists."""
     if isinstance(history, Mapping):
         cols = {k: np.asarray(v, float) for k, v in history.items()}
         if "step" not in cols:
@@ -293,9 +293,12 @@ def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, 
                   ylabel: Optional[str] = None):
     """Training and held-out (validation) curves against the optimizer step; returns the Axes.
 
-    ``history``: :attr:`jaxatt.fit.fitter.FitResult.history` (a list of dicts with ``step``, ``train_loss``,
-    ``val_loss``, ``train_angle_deg``, ``val_angle_deg``) or a dict of lists with the same keys. ``metric``
-    picks ``train_<metric>`` / ``val_<metric>`` ("loss" or "angle_deg"). The best held-out step is marked.
+    ``history``: :attr:`jaxatt.fitting.fitter.FitResult.history` (a list of dicts with ``step``, ``train_loss``,
+    ``val_loss``, ``train_metric``, ``val_metric``: the fit's metric, the mean angle error in deg on a study, the
+    mean total RMSE in deg on BROAD trials) or a dict of lists with the same keys. ``metric`` picks
+    ``train_<metric>`` / ``val_<metric>`` ("loss" or "metric"). The best held-out step is marked. The training
+    value recorded at step k is that of the params before update k, so it is drawn at k - 1, beside the held-out
+    value of the same params.
     """
     plt = _plt()
     if ax is None:
@@ -303,9 +306,11 @@ def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, 
     cols = _history_columns(history)
     step = cols["step"]
     tr, va = cols.get(f"train_{metric}"), cols.get(f"val_{metric}")
+    if tr is None and va is None:
+        raise ValueError(f"metric {metric!r}: the history has no train_{metric} / val_{metric} (keys: {sorted(cols)})")
     if tr is not None and np.any(np.isfinite(tr)):
         ok = np.isfinite(tr)
-        ax.plot(step[ok], tr[ok], "-o", ms=3, color="tab:blue", label="training runs (minibatch)")
+        ax.plot(step[ok] - 1, tr[ok], "-o", ms=3, color="tab:blue", label="training runs (minibatch)")
     if va is not None and np.any(np.isfinite(va)):
         ok = np.isfinite(va)
         ax.plot(step[ok], va[ok], "-s", ms=4, color="tab:orange", label="held-out runs")
@@ -314,7 +319,7 @@ def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, 
     if logy:
         ax.set_yscale("log")
     ax.set_xlabel("optimizer step")
-    ax.set_ylabel(ylabel or {"loss": "loss", "angle_deg": "mean angle error (deg)"}.get(metric, metric))
+    ax.set_ylabel(ylabel or {"loss": "loss", "metric": "error (deg)"}.get(metric, metric))
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     if title:

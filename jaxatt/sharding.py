@@ -7,7 +7,7 @@ replicated), and the runs-first outputs come back as one array sharded over the 
 over runs) is averaged over the devices with ``pmean``, so its gradient is the gradient of the mean over all
 runs.
 
-Devices (``devices`` argument of :func:`jaxatt.montecarlo.monte_carlo`, :func:`jaxatt.fit.losses.make_loss_fn`,
+Devices (``devices`` argument of :func:`jaxatt.montecarlo.monte_carlo`, :func:`jaxatt.fitting.losses.make_loss_fn`,
 :func:`jaxatt.fit`):
 
 * ``None`` (default): every device JAX sees (``jax.devices()``): one GPU, all GPUs of the machine, a TPU host,

@@ -1,6 +1,7 @@
 """Trumpf et al. 2012 scenarios: measured convergence rate of the observer (eq. 10, noise-free, from 150 deg)
 and the excitation measures (Defs. 3.3/4.1, Lemmas 3.4/4.2) of each scenario; the excitation plot of the
-switching-reference scenario. Usage: ``python benchmarks/complementary_scenarios.py [--out DIR]``."""
+switching-reference scenario. Usage: ``python research/complementary_scenarios.py [--out DIR] [--duration S]``
+(default DIR research/results: complementary-scenarios-<host>-<UTC>.json and excitation-switching.png)."""
 from __future__ import annotations
 
 import argparse
@@ -13,11 +14,15 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from _common import RESULTS_DIR, print_table, write_results  # noqa: E402
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "benchmarks"))
+from _common import print_table, write_results  # noqa: E402
 
 from jaxatt import analysis, montecarlo, so3  # noqa: E402
-from jaxatt.experiments import complementary as E  # noqa: E402
+from jaxatt.sim import references  # noqa: E402
+from jaxatt.studies import complementary as E  # noqa: E402
+
+RESULTS_DIR = HERE / "results"
 
 
 def main():
@@ -30,9 +35,10 @@ def main():
     for name in E.SCENARIO_NAMES:
         cfg = E.Config(scenario=name, duration=args.duration, noise_scale=0.0, hold="linear")
         scn = E.scenario(cfg)
-        samples, truth_r = __import__("jaxatt.sim.references", fromlist=["x"]).simulate_vectors(scn, cfg.duration, cfg.dt)
+        samples, truth_r = references.simulate_vectors(scn, cfg.duration, cfg.dt)
         out = montecarlo.run(E.observer(cfg), E.params(cfg), samples, dt=cfg.dt, hold="linear")
-        ang = np.rad2deg(np.asarray(jax.vmap(so3.angle_error)(jnp.asarray(truth_r)[1:], out.r)))
+        # T estimates for T samples: row 0 is the initial estimate (t = 0), row k the estimate at t_k
+        ang = np.rad2deg(np.asarray(jax.vmap(so3.angle_error)(jnp.asarray(truth_r), out.r)))
         t = np.asarray(out.t)
         sel = (ang < 20.0) & (ang > 1e-6)
         rate = float(-np.polyfit(t[sel], np.log(np.deg2rad(ang[sel])), 1)[0]) if sel.sum() > 100 else float("nan")
@@ -54,7 +60,7 @@ def main():
             fig.savefig(out_dir / "excitation-switching.png", dpi=110)
     print_table(rows, list(rows[0]), title=f"complementary observer (gain {E.Config().gain} 1/s), noise-free, "
                                            f"held-out scenarios; excitation over {window:g}-s windows")
-    print(f"written {write_results('complementary-scenarios', {'rows': rows}, out_dir=args.out)}")
+    print(f"written {write_results('complementary-scenarios', {'rows': rows}, out_dir=args.out or RESULTS_DIR)}")
 
 
 if __name__ == "__main__":

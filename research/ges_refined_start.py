@@ -1,8 +1,8 @@
 """Growing-memory gain schedules for batista-ges (issue 6): a five-number family on a refined Table-1
 schedule, searched on training runs only, then used as is or as the start of gradient tuning.
 
-Why a family (measured with this script and benchmarks/ges_gain_scan.py, written down in
-docs/observers/batista_ges.md):
+Why a family (measured with this script and research/ges_gain_scan.py, written down in
+research/batista_ges_tuning.md and research/README.md):
 
 * Table 1 of batista2019-ges stops switching at 720 s (alpha1 = 2.5 1/s, alpha2 = 5e-3 1/s^2). The
   Earth-rate block (eq. 15) then filters with a fixed memory of about alpha1 / alpha2 = 500 s, so the estimate
@@ -22,16 +22,18 @@ intervals from ``grow_from`` on get alpha1 = 2.5 x ``late_alpha1_scale`` and alp
 k / t_start); gain_z x ``gain_z_scale``.
 
 ``--search`` evaluates a grid of the family on ``--runs`` training runs of seed 0 (runs 0 ... runs-1; they are
-training runs of benchmarks/tune_acceptance.py, whose validation runs are 64-79 and whose held-out runs are
-seed 1) and keeps the lowest steady-state mean angle error. Without ``--search`` it writes the family at the
-values the search chose (``CHOSEN``) and measures them against the paper's gains on ``--runs`` training runs.
+training runs of research/tune_acceptance.py, whose validation runs are 64-79 and whose held-out runs are
+seed 1) and keeps the lowest steady-state mean angle error. Without ``--search`` it measures the family at the
+values the search chose (``CHOSEN``, the defaults of ``growing_memory_params``) against the paper's gains on
+``--runs`` training runs.
 
-Writes the gains JSON (``--out``, default benchmarks/results/gains-batista-ges-growing.json) and
-benchmarks/results/ges-refined-start-<host>-<UTC>.json, and prints what it measured.
+Writes research/results/ges-refined-start-<host>-<UTC>.json (``--results``), prints what it measured, and with
+``--out G.json`` the family's gains file (jaxatt.fitting.gainsfile; the chosen family ships as
+jaxatt/data/gains/batista-ges-growing.json).
 
-Usage: python benchmarks/ges_refined_start.py [--search] [--runs 32] [--family JSON] [--noise gyro|mag]
-   then: python benchmarks/tune_acceptance.py --experiment batista-ges --gains <that gains JSON>   (held out)
-   or:   python benchmarks/tune_acceptance.py --experiment batista-ges --start <that gains JSON> ...   (tune)
+Usage: python research/ges_refined_start.py [--search] [--runs 32] [--family JSON] [--noise gyro|mag] [--out G.json]
+   then: python research/tune_acceptance.py --experiment batista-ges --gains G.json   (held out)
+   or:   python research/tune_acceptance.py --experiment batista-ges --start G.json ...   (tune)
 """
 from __future__ import annotations
 
@@ -43,14 +45,16 @@ import time
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "benchmarks"))
 
 import _common as C  # noqa: E402
+
+RESULTS_DIR = HERE / "results"
 
 REFINED_TIMES = (900.0, 1200.0, 1500.0, 1800.0, 2100.0, 2400.0, 2700.0, 3000.0, 3300.0)  # = ges.GROWING_MEMORY_TIMES
 #: The first growing-memory start (kept to reproduce the earlier rows of the issue-6 note).
 FIRST_START = {"k": 1.44, "grow_from": 1200.0, "early_scale": 1.0, "late_alpha1_scale": 1.0, "gain_z_scale": 2.0}
-#: The values ``--search`` chose on training runs 0-31 of seed 0 (see docs/observers/batista_ges.md).
+#: The values ``--search`` chose on training runs 0-31 of seed 0 (see research/batista_ges_tuning.md).
 CHOSEN = {"k": 1.5, "grow_from": 900.0, "early_scale": 0.01, "late_alpha1_scale": 0.1, "gain_z_scale": 8.0}
 #: The grid of ``--search`` (grow_from = 900 s and late_alpha1_scale = 0.1 fixed: the late alpha1 alone did
 #: not change the error, only the ratio does).
@@ -66,14 +70,14 @@ def family_params(p, **family):
 
 
 def family_transforms(switch_times, grow_from=900.0):
-    """Transforms that tune batista-ges through a few shapes of the family (jaxatt.parametrize.LogBasis /
+    """Transforms that tune batista-ges through a few shapes of the family (jaxatt.fitting.parametrize.LogBasis /
     ScaledSPD) instead of every interval: alpha1 = one level before ``grow_from`` and one after; alpha2 = the
     same two levels and a power of t after ``grow_from`` (log alpha2 += p log(t_start / grow_from): p = -1 is
     a 1/t memory); gain_z = one scale per row of R (3 blocks of 3). 8 numbers; the gradient of each sums the
     per-interval gradients along its shape."""
     import numpy as np
 
-    from jaxatt import parametrize as P
+    from jaxatt.fitting import parametrize as P
 
     starts = np.concatenate([[0.0], np.asarray(switch_times, float)])
     late = starts >= grow_from
@@ -107,30 +111,30 @@ def main(argv=None) -> int:
     ap.add_argument("--search", action="store_true", help="evaluate GRID on the training runs, keep the best")
     ap.add_argument("--first-start", action="store_true", help="write the first start (FIRST_START) instead")
     ap.add_argument("--family", default=None, metavar="JSON",
-                    help='override some of the chosen values, e.g. \'{"k": 1.0, "early_scale": 1.0}\' (the gains '
-                         'file is written only with an explicit --out)')
+                    help='override some of the chosen values, e.g. \'{"k": 1.0, "early_scale": 1.0}\'')
     ap.add_argument("--noise", choices=("both", "gyro", "mag"), default="both",
                     help="simulate only the gyro or only the magnetometer noise (to see which one an error comes "
                          "from); no gains file is written")
-    ap.add_argument("--out", default=None, help="gains JSON (default benchmarks/results/gains-batista-ges-growing.json, "
-                                                "or ...-refined-start.json with --first-start)")
-    ap.add_argument("--results", default=str(C.RESULTS_DIR))
+    ap.add_argument("--out", default=None, help="write the family's gains file here (not with --noise gyro|mag)")
+    ap.add_argument("--results", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
     if args.search and args.runs <= 0:
         ap.error("--search needs --runs > 0")
-    write_gains = args.noise == "both" and (args.family is None or args.out is not None)
-    if args.out is None:
-        name = "refined-start" if args.first_start else "growing"
-        args.out = str(C.RESULTS_DIR / f"gains-batista-ges-{name}.json")
+    if args.out is None and args.runs <= 0:
+        ap.error("--runs 0 measures nothing: give --out to write the gains file")
+    write_gains = args.noise == "both" and args.out is not None
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from jaxatt import tune as T
+    from jaxatt import studies
+    from jaxatt.fitting import gainsfile
+    from jaxatt.observers import registry
+    from jaxatt.studies.base import config_dict
 
     overrides = {"gyro": {"mag_noise_nT": 0.0}, "mag": {"gyro_arw_deg_h_rthz": 0.0}}.get(args.noise, {})
-    s = T.setup("batista-ges", **overrides)
+    s = studies.get("batista-ges").setup(**overrides)
     meta = C.metadata(sys.argv if argv is None else ["ges_refined_start.py"] + list(argv))
     chosen = dict(FIRST_START if args.first_start else CHOSEN)
     if args.family:
@@ -159,11 +163,13 @@ def main(argv=None) -> int:
     q = family_params(s.params, **chosen)
     s.check_params(q)
     if not write_gains:
-        args.out = None  # a noise study or an ad-hoc family: the default gains file is left alone
+        args.out = None  # a noise study: no gains file
     else:
-        T.save_gains(args.out, "batista-ges", q, config=s.config, extra={
-            "notes": [f"growing-memory family of benchmarks/ges_refined_start.py at {chosen}; chosen on training "
-                      f"runs of seed 0 only"], "family": chosen})
+        gainsfile.write(args.out, observer="batista-ges", params=q, gains=registry.get("batista-ges").gains,
+                        study="batista-ges", status="done", settings={"study": "batista-ges",
+                                                                      "config": config_dict(s.config)},
+                        notes=[f"growing-memory family of research/ges_refined_start.py at {chosen}; chosen on "
+                               "training runs of seed 0 only"], family=chosen)
         print(f"gains written to {args.out}")
     if args.runs <= 0:
         return 0

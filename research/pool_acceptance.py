@@ -1,4 +1,4 @@
-"""Pool several held-out evaluations of the same gains (benchmarks/tune_acceptance.py JSONs with disjoint
+"""Pool several held-out evaluations of the same gains (research/tune_acceptance.py JSONs with disjoint
 ``--eval-seed``) into one acceptance number (issue 6).
 
 Each file holds the paper's and the tuned gains on the same runs (paired). Pooled over the N runs of all files:
@@ -7,8 +7,8 @@ steady-state mean angle error of both (run-weighted means), the paired differenc
 B recomputed on the run-weighted mean error curves (settling into the 10 % band of the pooled paper steady
 error, the same moving-average rule as tune_acceptance.py).
 
-Usage: python benchmarks/pool_acceptance.py benchmarks/results/tune_acceptance-batista-ges-*.json ...
-Writes benchmarks/results/pool-acceptance-<host>-<UTC>.json.
+Usage: python research/pool_acceptance.py research/results/tune_acceptance-batista-ges-*.json ...
+Writes research/results/pool-acceptance-<host>-<UTC>.json (``--out``).
 """
 from __future__ import annotations
 
@@ -19,17 +19,17 @@ import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "benchmarks"))
 
 import _common as C  # noqa: E402
-from tune_acceptance import settling_time  # noqa: E402
+from tune_acceptance import RESULTS_DIR, settling_time  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="+", help="tune_acceptance JSONs of the same gains, different --eval-seed")
     ap.add_argument("--smooth-s", type=float, default=60.0)
-    ap.add_argument("--out", default=str(C.RESULTS_DIR))
+    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
     import numpy as np
 

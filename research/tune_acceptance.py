@@ -1,14 +1,15 @@
-"""Acceptance study of gradient tuning (issue 6): tune an experiment's gains on at most 64 training seeds,
+"""Acceptance study of gradient tuning (issue 6): tune a study's gains on at most 64 training seeds,
 then compare tuned and paper gains on 100 held-out seeds.
 
-Steps (one experiment per call):
+Steps (one study per call):
 
-1. ``jaxatt.tune.tune``: Adam on the experiment's gains (jaxatt.parametrize.GAINS: batista-ges alpha1/alpha2
-   Table-1 schedules + the 9x9 SPD gain_z; batista-so3 alpha0 ... alpha4 with alpha1/alpha2 schedules), loss
-   = mean squared rotation-angle error over the steady-state window t >= 2400 s of a 3600-s run (by default),
-   averaged over a minibatch of training runs (seed ``--seed``, run indices 0 ... train_runs-1); early stopping
-   on validation runs (the next ``--val-runs`` indices of the same seed). The gains JSON is written as the loop
-   goes (``--gains-out``).
+1. ``jaxatt.fitting.fitter.fit(None, None, study, ...)``: Adam on the gains the registry tunes by default
+   (batista-ges alpha1/alpha2 Table-1 schedules + the 9x9 SPD gain_z; batista-so3 alpha0 ... alpha4 with
+   alpha1/alpha2 schedules; NLIO-FG Kp, kv, K1, K2), loss = mean squared rotation-angle error over the
+   steady-state window t >= 2400 s of a 3600-s run (by default), averaged over a minibatch of training runs
+   (seed ``--seed``, run indices 0 ... train_runs-1); early stopping on validation runs (the next ``--val-runs``
+   indices of the same seed). The gains file (``jaxatt.fitting.gainsfile``) is written as the loop goes
+   (``--gains-out``; an existing file is not replaced).
 2. Held-out evaluation: ``jaxatt.montecarlo.monte_carlo`` of ``--eval-runs`` runs of another base seed
    (``--eval-seed``; disjoint from every training / validation key) with the paper's and the tuned gains, the
    same runs for both (paired), with a decimated angle-error trace.
@@ -18,32 +19,34 @@ Steps (one experiment per call):
    ``--smooth-s``, stays below (1 + tol) x the paper gains' steady-state mean error (tol = 10 %; 5/25/50 %
    also listed).
 
-Writes ``benchmarks/results/tune_acceptance-<experiment>-<host>-<UTC>.json`` (settings, tuning history,
+Writes ``research/results/tune_acceptance-<experiment>-<host>-<UTC>.json`` (settings, tuning history,
 gains, both metric sets in the ``jaxatt reproduce`` layout, criteria) and prints a summary.
 
 Usage:
-  python benchmarks/tune_acceptance.py --experiment batista-ges            # full scale (hours on 2 CPU cores)
-  python benchmarks/tune_acceptance.py --experiment batista-so3 --steps 20 --batch-runs 8
-  python benchmarks/tune_acceptance.py --experiment batista-ges --gains G.json   # evaluation only
-  python benchmarks/tune_acceptance.py --experiment batista-ges --refine-schedule 900 1200 ... 3300 \
+  python research/tune_acceptance.py --experiment batista-ges            # full scale (hours on 2 CPU cores)
+  python research/tune_acceptance.py --experiment batista-so3 --steps 20 --batch-runs 8
+  python research/tune_acceptance.py --experiment batista-ges --gains G.json   # evaluation only
+  python research/tune_acceptance.py --experiment batista-ges --gains jaxatt/data/gains/batista-ges-growing.json \
+      --eval-seed 2 --eval-runs 300                                       # the shipped growing-memory gains
+  python research/tune_acceptance.py --experiment batista-ges --refine-schedule 900 1200 ... 3300 \
       --schedule-from 720 --diagonal-spd --loss angle [--start G.json]   # tune a refined schedule (see
-      benchmarks/ges_refined_start.py for the growing-memory start)
-  python benchmarks/tune_acceptance.py --experiment batista-so3 --duration 900 ...  # reduced scale (labelled)
+      research/ges_refined_start.py for the growing-memory start)
+  python research/tune_acceptance.py --experiment batista-so3 --duration 900 ...  # reduced scale (labelled)
 """
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 import time
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "benchmarks"))
 
 import _common as C  # noqa: E402
 
+RESULTS_DIR = HERE / "results"
 TOLERANCES = (0.05, 0.10, 0.25, 0.50)
 
 
@@ -116,7 +119,7 @@ def main(argv=None) -> int:
                          "paper's values)")
     ap.add_argument("--family-basis", action="store_true",
                     help="batista-ges: tune 8 numbers that move the schedules and gain_z through fixed shapes "
-                         "(benchmarks/ges_refined_start.py family_transforms; use with --refine-schedule)")
+                         "(research/ges_refined_start.py family_transforms; use with --refine-schedule)")
     ap.add_argument("--freeze", nargs="*", default=(), help="gains kept at the paper's values")
     ap.add_argument("--seed", type=int, default=0, help="base seed of the training and validation runs")
     ap.add_argument("--eval-runs", type=int, default=100)
@@ -125,9 +128,9 @@ def main(argv=None) -> int:
     ap.add_argument("--trace-every", type=int, default=500, help="steps between trace samples (divides 1000)")
     ap.add_argument("--smooth-s", type=float, default=60.0)
     ap.add_argument("--gains", default=None, help="evaluate these gains (skip tuning)")
-    ap.add_argument("--gains-out", default=None, help="gains JSON written while tuning "
-                                                      "(default benchmarks/results/gains-<experiment>.json)")
-    ap.add_argument("--out", default=str(C.RESULTS_DIR))
+    ap.add_argument("--gains-out", default=None, help="gains file written while tuning "
+                                                      "(default <--out>/gains-<experiment>.json; must not exist)")
+    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
 
     import jax
@@ -135,36 +138,46 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from jaxatt import tune as T
+    from jaxatt import io, studies
+    from jaxatt.fitting import fitter, gainsfile
+    from jaxatt.fitting import parametrize as P
+    from jaxatt.observers import registry
 
     meta = C.metadata(sys.argv if argv is None else ["tune_acceptance.py"] + list(argv))
     cfg = {} if args.duration is None else {"duration": args.duration}
-    s = T.setup(args.experiment, **cfg)
+    s = studies.get(args.experiment).setup(**cfg)
+    gains_decl = registry.get(s.entry).gains
     reduced = s.duration != (3600.0 if args.experiment.startswith("batista") else 500.0)
     t_start = time.perf_counter()
     tuning = None
     if args.gains:
-        _, tuned, payload = T.load_gains(args.gains, s.params, experiment=args.experiment)
+        payload = gainsfile.read(args.gains)
+        if payload["observer"] != s.entry or payload.get("study") not in (None, args.experiment):
+            ap.error(f"--gains {args.gains} holds gains of {payload['observer']} ({payload.get('study')}), not of "
+                     f"{args.experiment}")
+        tuned = gainsfile.apply(s.params, payload["gains"], source=args.gains)
         gains_path = args.gains
-        tuning = {k: payload.get(k) for k in ("status", "best_step", "best_val_loss", "start_val_loss", "tuning",
-                                               "history")}
+        # jaxatt 0.2's keys, or 0.1's (best_val_loss, start_val_loss, tuning)
+        tuning = {"status": payload.get("status"), "best_step": payload.get("best_step"),
+                  "best_val_loss": payload.get("best_loss", payload.get("best_val_loss")),
+                  "start_val_loss": payload.get("start_loss", payload.get("start_val_loss")),
+                  "tuning": payload.get("settings", payload.get("tuning")), "history": payload.get("history")}
     else:
         gains_path = args.gains_out or str(pathlib.Path(args.out) / f"gains-{args.experiment}.json")
         masks = {}
         if args.diagonal_spd:
-            from jaxatt import parametrize as P
-
-            for g in P.gains_of(args.experiment):
-                if isinstance(g.transform, P.SPD) and g.field not in args.freeze:
+            for g in gains_decl:
+                if g.constraint == "spd" and g.field not in args.freeze:
                     masks[g.field] = P.SPD.diagonal_mask(int(np.shape(getattr(s.params, g.field))[0]))
-        # switch times of the tuned schedules (the paper's plus --refine-schedule)
-        times = np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
+        if (args.schedule_from is not None or args.family_basis) and not hasattr(s.params, "switch_times"):
+            ap.error(f"--schedule-from / --family-basis: {s.entry} has no gain schedule")
+        # switch times of the tuned schedules (the paper's plus --refine-schedule); NLIO-FG has none
+        times = (np.unique(np.concatenate([np.asarray(s.params.switch_times, float), args.refine_schedule]))
+                 if hasattr(s.params, "switch_times") else None)
         if args.schedule_from is not None:
-            from jaxatt import parametrize as P
-
-            for f in P.schedule_fields(args.experiment):
-                if f not in args.freeze:
-                    masks[f] = P.schedule_mask_from(times, args.schedule_from)
+            for g in gains_decl:
+                if g.constraint == "schedule" and g.field not in args.freeze:
+                    masks[g.field] = P.schedule_mask_from(times, args.schedule_from)
         transforms = None
         if args.family_basis:
             if args.experiment != "batista-ges" or masks:
@@ -173,15 +186,14 @@ def main(argv=None) -> int:
 
             transforms = family_transforms(times)
         t0 = time.perf_counter()
-        res = T.tune(args.experiment, steps=args.steps, train_runs=args.train_runs, out_path=gains_path,
-                     seed=args.seed, batch_runs=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
-                     patience=args.patience, lr=args.lr, loss=args.loss, config=cfg, freeze=tuple(args.freeze),
-                     masks=masks or None, refine_schedule=args.refine_schedule, start=args.start,
-                     transforms=transforms)
+        res = fitter.fit(None, None, args.experiment, steps=args.steps, train_runs=args.train_runs, out=gains_path,
+                         seed=args.seed, batch=args.batch_runs, val_runs=args.val_runs, val_every=args.val_every,
+                         patience=args.patience, lr=args.lr, loss=args.loss, config=cfg, freeze=tuple(args.freeze),
+                         masks=masks or None, refine_schedule=args.refine_schedule, start=args.start,
+                         transforms=transforms, quiet=False)
         tuned = res.params
-        r = res.result
-        tuning = {"status": r.status, "best_step": r.best_step, "best_val_loss": r.best_val,
-                  "start_val_loss": r.start_val, "history": r.history, "wall_s": time.perf_counter() - t0}
+        tuning = {"status": res.status, "best_step": res.best_step, "best_val_loss": res.best_loss,
+                  "start_val_loss": res.start_loss, "history": res.history, "wall_s": time.perf_counter() - t0}
     if args.eval_seed == args.seed:
         print("warning: --eval-seed equals --seed: held-out runs may overlap training runs", file=sys.stderr)
 
@@ -229,8 +241,9 @@ def main(argv=None) -> int:
           f"to the paper's steady error, 10 % band): {'MET' if crit_b else 'not met'}")
     data = {
         "settings": vars(args), "summary": summary, "settling": settle, "tuning": tuning, "gains_path": gains_path,
-        "gains": T.gains_to_dict(args.experiment, tuned), "paper_gains": T.gains_to_dict(args.experiment, s.params),
-        "metrics": T.summarise(rt.per_run), "paper_gains_metrics": T.summarise(rp.per_run),
+        "gains": gainsfile.gains_to_dict(tuned, gains_decl),
+        "paper_gains": gainsfile.gains_to_dict(s.params, gains_decl),
+        "metrics": io.summarise(rt.per_run), "paper_gains_metrics": io.summarise(rp.per_run),
         "curves": {"t_s": t.tolist(), "paper_mean_angle_deg": curve_p.tolist(),
                    "tuned_mean_angle_deg": curve_t.tolist()},
         "timing": {"eval_paper_s": wp, "eval_tuned_s": wt, "total_s": time.perf_counter() - t_start},

@@ -91,6 +91,10 @@ def test_quickstart(tmp_path):
     assert 0.05 < r["mc_mean_angle_error_deg"] < 1.0  # paper: 0.38 deg over 1000 runs
     # run 0 of the fused Monte Carlo is the simulated log run through montecarlo.run
     assert abs(r["mc_run0_final_angle_error_deg"] - r["final_angle_error_deg"]) < 1e-6
+    # T samples give T estimates; traces start at estimate 0 (t = 0, the 180 deg initial error)
+    assert r["n_estimates"] == r["n_samples"] > 1
+    assert r["mc_trace_start_s"] == 0.0
+    assert r["mc_trace_start_angle_error_deg"] > 179.0
 
 
 def test_paper_figures(tmp_path):
@@ -127,8 +131,10 @@ def test_broad_real_data(tmp_path):
     for name, m in r["per_trial"].items():
         assert 0.5 < m["total_rmse_deg"] < 45.0, (name, m)
         assert m["heading_rmse_deg"] <= m["total_rmse_deg"] + 1e-9
-    # float64 filter vs the published float32 numbers: rounding only
+        assert 0.5 < m["registered_total_rmse_deg"] < 45.0, (name, m)  # jaxatt.broad_score("mahony", ...)
+    # float64 filter vs the published float32 numbers: rounding (and BROAD processing sample 0 twice, ~1e-4 deg)
     assert r["max_abs_diff_to_published_deg"] is not None and r["max_abs_diff_to_published_deg"] < 0.01
+    assert r["filter_vs_score_diff_deg"] < 1e-6  # jaxatt.filter + broad.broad_errors = jaxatt.broad_score
     grid = np.asarray(r["kp_grid"]["mean_total_rmse_deg"])
     assert np.all(np.isfinite(grid)) and grid.min() < 10.0
 
@@ -150,6 +156,7 @@ def test_tuning(tmp_path):
     assert r["gain_scale"] > 2.0  # the paper's gain is far too slow for a 300 s horizon
     assert r["eval_tuned_mean_angle_deg"] < 0.3 * r["eval_paper_mean_angle_deg"]  # on seeds never used
     assert r["gains_roundtrip"] is True
+    assert r["loss_fn_val_rel_diff"] < 1e-9  # losses.make_loss_fn on the held-out seeds = the fit's held-out loss
     assert (figs / "05_tuned_gains.json").exists()
 
 

@@ -1,4 +1,4 @@
-"""Constrained parametrizations (jaxatt.fit.parametrize) and the gains file (jaxatt.fit.gainsfile): every theta
+"""Constrained parametrizations (jaxatt.fitting.parametrize) and the gains file (jaxatt.fitting.gainsfile): every theta
 gives a valid gain, round trips are exact, masks freeze exactly, gradients are finite. No simulation: fast."""
 import json
 from typing import NamedTuple
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from jaxatt import schedule
-from jaxatt.fit import gainsfile
-from jaxatt.fit import parametrize as P
+from jaxatt.fitting import gainsfile
+from jaxatt.fitting import parametrize as P
 from jaxatt.observers import registry
 from jaxatt.studies import batista_ges, batista_so3
 

@@ -10,7 +10,7 @@ import pytest
 
 import jaxatt
 from jaxatt import engine, montecarlo, so3
-from jaxatt.fit import parametrize as P
+from jaxatt.fitting import parametrize as P
 from jaxatt.observers import registry
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "observers"

@@ -16,7 +16,7 @@ SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     import numpy as np
     from jaxatt import montecarlo
-    from jaxatt.fit import losses as tune
+    from jaxatt.fitting import losses as tune
     from jaxatt.studies import batista_ges as E
 
     assert len(jax.devices()) == 2, jax.devices()

@@ -2,7 +2,7 @@
 through the whole simulation match central finite differences (with and without checkpointing), stay finite
 across gain switches and the Theorem-3 projection, and tuning from a poor gain lowers the loss on held-out seeds.
 
-Cost control: every gradient here goes through the cached jitted loss of :func:`jaxatt.fit.losses.make_loss_fn`
+Cost control: every gradient here goes through the cached jitted loss of :func:`jaxatt.fitting.losses.make_loss_fn`
 with the same static settings per observer, so each (observer, checkpoint) pair compiles once for the
 whole module (three gradient programs, two forward programs); params (switch times, initial estimate, gains)
 change freely without compiling again.
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from jaxatt import montecarlo, so3, studies
-from jaxatt.fit import fitter, gainsfile
-from jaxatt.fit import losses as L
-from jaxatt.fit import parametrize as P
+from jaxatt.fitting import fitter, gainsfile
+from jaxatt.fitting import losses as L
+from jaxatt.fitting import parametrize as P
 from jaxatt.observers import registry
 
 DURATION = 6.0  # s at 100 Hz: 600 steps

@@ -13,21 +13,20 @@ direction of the local magnetic field), so estimates are compared with no offset
 Conventions: quaternions Hamilton, scalar first (w, x, y, z); q maps sensor coordinates to ENU; angles in the
 returned metrics are in degrees (``_deg``), everything else SI.
 
-Sample alignment: BROAD's filters update with sample k and report the estimate *after* processing sample k,
-which is compared with ``opt_quat[k]``; the filter is started (``setState``) from sample 0 and then sample 0 is
-processed too. In jaxatt's step convention (advance from ``sample.t`` to ``sample.t + dt`` with ``sample``)
-that estimate carries the label t_k + dt; :func:`run_on_trial` follows BROAD and pairs it with sample k.
+Sample alignment (jaxatt's, :mod:`jaxatt.engine`): estimate 0 is the observer's start from sample 0 and, with the
+"next" hold, estimate k is the update with sample k; it is scored against ``opt_quat[k]``. BROAD's example code
+also starts (``setState``) from sample 0 but then processes sample 0 a second time; that moves the RMSEs by at
+most ~1e-4 deg.
 
 Reproducing BROAD's published Mahony numbers (``published/results_mahony_average_rmse.json``, computed by the
 dataset authors with S. Madgwick's C implementation in float32, compiled without FMA): :mod:`jaxatt.observers.mahony`
-performs the same float32 operations in the same order, and :func:`run_on_trial` / :func:`run_on_padded` start
-it from a float64 start quaternion as their ``setState`` does and rotate the float32 output into ENU in float64.
-With ``dtype="float32"`` and the process started with ``XLA_FLAGS=--xla_cpu_max_isa=SSE4_2`` (x86 CPUs; without it
-XLA contracts a*b + c into fused multiply-adds and rewrites 1/sqrt(x) as rsqrt(x), which round differently) the
-per-trial RMSEs agree with the published ones to ~1e-14 deg. The float64 filter (the default) is the exact
-algorithm; it differs from the float32 reference by its rounding: up to ~6e-4 deg in the RMSEs (about 1e-3 deg in
-the orientation), far below the errors themselves (2-41 deg). The group averages in that file are over all 39
-trials of the full dataset and cannot be recomputed from a subset.
+(``make_observer("broad")``) performs the same float32 operations in the same order; replaying BROAD's protocol
+(start from sample 0 computed in float64, sample 0 processed twice, the float32 NWU output rotated into ENU in
+float64; ``tests/test_broad.py``) with ``XLA_FLAGS=--xla_cpu_max_isa=SSE4_2`` (x86 CPUs; without it XLA contracts
+a*b + c into fused multiply-adds and rewrites 1/sqrt(x) as rsqrt(x), which round differently) gives the published
+per-trial RMSEs to ~1e-14 deg. The float64 filter differs from the float32 reference by its rounding: up to ~6e-4
+deg. The group averages in that file are over all 39 trials of the full dataset and cannot be recomputed from a
+subset.
 
 h5py is needed only to read the files: ``pip install "jaxatt[data]"``.
 """
@@ -46,7 +45,7 @@ from .. import engine
 from ..types import ImuSample, Observer
 
 __all__ = ["Trial", "PaddedTrials", "load", "load_trial", "list_trials", "load_trials", "load_trial_info",
-           "trial_groups", "group_trials", "group_of", "resolve_trials", "stratified_folds", "error_angles",
+           "trial_groups", "group_trials", "group_of", "resolve_trials", "stratified_folds", "error_angles", "metric_fn", "metric_batch",
            "broad_errors", "error_angles_jax", "broad_errors_jax", "pad_trials", "batch_item", "score",
            "METRIC_REDUCER", "ATTRIBUTION", "METRICS", "GROUPS", "ANCHORS"]
 
@@ -459,6 +458,26 @@ def _metric_finish(acc):
 METRIC_REDUCER = engine.Reducer(_metric_init, _metric_update, _metric_finish)
 
 
+def metric_batch(observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None,
+                 step_remat: bool = False):
+    """(``fn(params, item) -> {metric: (B,) RMSE deg}``, item): the BROAD metric of ``observer`` over a batch item
+    of padded trials (rows may be selected: ``item[i]`` for a minibatch), and the item of ``trials``. Pure JAX in
+    the params; ``step_remat`` rematerialises each step in the reverse pass (memory: one state per step and trial)."""
+    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    padded = pad_trials(trials)
+    n_steps = int(padded.samples.t.shape[1]) - 1
+    fn = engine.compiled(observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype,
+                         step_remat=step_remat)
+    return (lambda params, item: fn(None, params, item).summary), batch_item(padded, dtype)
+
+
+def metric_fn(observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None, step_remat: bool = False):
+    """``fn(params) -> {metric: (B,) RMSE deg}``: the BROAD metric of ``observer`` on ``trials`` as a pure JAX
+    function of the params (jit it, vmap it over a grid of gains, differentiate it), all trials in one scan."""
+    fn, item = metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat)
+    return lambda params: fn(params, item)
+
+
 def score(observer: Observer, params, trials: Sequence[Trial], *, hold: str = "next", dtype=None) -> Dict[str, Dict[str, float]]:
     """BROAD metric of ``observer`` on each trial: {trial name: {metric: RMSE deg}}, all trials in one vmapped scan.
 
@@ -468,10 +487,6 @@ def score(observer: Observer, params, trials: Sequence[Trial], *, hold: str = "n
     ``dtype``: the filter's arithmetic (default jax's default float); the metric is computed in float64 when x64
     is enabled.
     """
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    padded = pad_trials(trials)
-    n_steps = int(padded.samples.t.shape[1]) - 1
-    fn = engine.compiled(observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype)
-    summary = jax.device_get(fn(None, params, batch_item(padded, dtype)).summary)
+    summary = jax.device_get(metric_fn(observer, trials, hold=hold, dtype=dtype)(params))
     return {tr.name: {m: float(summary[m][i]) for m in METRICS} for i, tr in enumerate(trials)}
 

@@ -202,7 +202,7 @@ def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0
     than Table 1's last. The intervals before ``grow_from`` keep Table 1 with alpha1 and alpha2 both times
     ``early_scale`` (same ratio: Table 1's large early alpha1 passes magnetometer noise into x2^, which a long
     memory would keep); gain_z (eq. 21) is multiplied by ``gain_z_scale``. Every gain stays positive, so
-    Theorems 1-3 hold on each interval. The defaults were chosen by ``benchmarks/ges_refined_start.py
+    Theorems 1-3 hold on each interval. The defaults were chosen by ``research/ges_refined_start.py
     --search`` on 32 training runs of Section IV's 3600-s scenario; on 700 held-out runs they lower the
     steady-state (t >= 2400 s) mean angle error by 22.7 %. The memory stops growing at the last of
     ``refine_times``: for longer runs pass switch times that cover the horizon.

@@ -329,9 +329,9 @@ def make_observer(init_mode: str = "broad") -> Observer:
 
     Returns ``Observer(init, step, "mahony")`` with
     ``init(params, first_sample) -> State`` and ``step(params, state, sample, dt) -> (State, Out)``: the step
-    processes ``sample`` (gyro, acc and mag at ``sample.t``) with time step ``dt`` and returns the estimate at
-    ``sample.t + dt``. A :class:`jaxatt.types.Interval` input is processed with its start sample (the filter
-    is a zero-order-hold, explicit-Euler filter by construction).
+    updates the estimate with ``sample`` (gyro, acc and mag) over ``dt`` and returns it at ``state.t + dt`` (on
+    recorded data the engine hands it the newest sample, hold "next", as BROAD's C code). A
+    :class:`jaxatt.types.Interval` input is processed with its start sample (an explicit-Euler filter).
     """
     if init_mode not in ("broad", "triad"):
         raise ValueError(f"init_mode must be 'broad' or 'triad', got {init_mode!r}")

@@ -28,7 +28,7 @@ from ..types import Observer
 __all__ = ["Gain", "Entry", "INDEX", "names", "get", "register", "recorded_observer", "CONSTRAINTS",
            "first_sample_frame"]
 
-#: Constraints a gain can declare (the fitter maps each to a transform, :mod:`jaxatt.fit.parametrize`):
+#: Constraints a gain can declare (the fitter maps each to a transform, :mod:`jaxatt.fitting.parametrize`):
 #: "positive" (elementwise > 0, learnt in log space), "schedule" (a positive piecewise-constant gain, one value per
 #: interval of the params' ``switch_times``), "spd" (symmetric positive definite, scaled Cholesky factor),
 #: "spd-diagonal" (SPD kept diagonal), "real" (unconstrained).
@@ -110,7 +110,7 @@ class Entry(NamedTuple):
     def params(self, dtype=None):
         """The params used when none are given: the shipped gains file when there is one, else the defaults."""
         if self.shipped is not None:
-            from ..fit import gainsfile
+            from ..fitting import gainsfile
 
             return gainsfile.load_shipped(self.shipped, self, dtype=dtype)
         return self.default_params(dtype=dtype)

@@ -503,8 +503,9 @@ def make_observer() -> Observer:
     """The robust AHRS as ``Observer(init, step, "robust_ahrs")`` (see the module docstring).
 
     ``init(params, first_sample) -> State`` (TRIAD start); ``step(params, state, sample, dt) -> (State, Out)``
-    processes ``sample`` (gyro over [t, t + dt], then acc, then mag at that sample) and returns the estimate at
-    ``sample.t + dt``. An :class:`jaxatt.types.Interval` input is processed with its start sample. Both
+    processes ``sample`` (gyro over the step, then acc, then mag) and returns the estimate at ``state.t + dt`` (on
+    recorded data the engine hands it the newest sample, hold "next"). An :class:`jaxatt.types.Interval` input is
+    processed with its start sample. Both
     broadcast over leading batch axes (the step is elementwise), and both vmap.
     """
     return _OBSERVER

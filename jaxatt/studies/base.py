@@ -22,6 +22,7 @@ import sys
 import time
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
+import jax
 import numpy as np
 
 from .. import io
@@ -71,7 +72,7 @@ class Study(abc.ABC):
 
     Class attributes: ``name`` (CLI name), ``paper`` (reference, with the section), ``tuned`` (label of the observer
     that ``jaxatt tune`` tunes), ``entry`` (its registry name), ``loss_kind`` (pointwise loss of
-    :mod:`jaxatt.fit.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric, label) rows of the table).
+    :mod:`jaxatt.fitting.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric, label) rows of the table).
     """
 
     name: str = ""
@@ -306,7 +307,7 @@ def evaluate(study: Study, params, *, runs: int = 100, seed: int = 1, json_path:
     """Monte Carlo of the study's tuned observer with ``params`` (e.g. from a gains file) on ``runs`` runs of base
     ``seed``; with ``compare_paper`` also the paper's gains on the same runs: ``paper_gains_metrics`` and
     ``comparison`` (mean of each metric, tuned / paper). Same JSON layout as :func:`reproduce`."""
-    from ..fit import gainsfile
+    from ..fitting import gainsfile
     from ..observers import registry
 
     cfg = cfg if cfg is not None else study.config()
@@ -318,7 +319,9 @@ def evaluate(study: Study, params, *, runs: int = 100, seed: int = 1, json_path:
                         quiet=quiet, title=f"{study.name} evaluate", observers=obs,
                         extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source,
                                **(extra or {})})
-    if compare_paper and gains_source != "paper" and payload["complete"]:
+    same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+               zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params)))
+    if compare_paper and not same and payload["complete"]:
         ref = reproduce(study, cfg, runs=runs, seed=seed, chunk=chunk, dtype=dtype, json_path=None, quiet=True,
                         title=f"{study.name} paper gains", observers={study.tuned: (s.observer, s.params)})
         pm = ref["metrics"]

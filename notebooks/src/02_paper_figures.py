@@ -9,12 +9,15 @@
 # (GES Fig. 5, SO(3) Fig. 4) and the steady-state standard deviations over t >= 2400 s (Table 2), from
 # Monte Carlo studies of 1000 runs.
 #
-# Here each study is one call of `montecarlo.monte_carlo` with decimated traces; run 0's trace gives the
+# Each paper's set-up is a study object, `jaxatt.studies.get(name)`; its `setup(**overrides)` gives the scenario,
+# observer, paper gains, errors, windows and published numbers. Here each study is one call of
+# `montecarlo.monte_carlo` with decimated traces (every 10th estimate, from t = 0); run 0's trace gives the
 # single-run panels, all runs give the envelopes, and the per-run summaries give Table 2.
 #
 # **Reduced mode** (`JAXATT_NOTEBOOK_QUICK=1`): 4 runs per paper, sampled at 50 Hz instead of 100 Hz (the
 # sensor specifications are the same, so per-sample noise follows the rate). Full mode: 50 runs at 100 Hz
-# (minutes on a laptop CPU). The paper-size study is `jaxatt reproduce batista-ges --runs 1000`.
+# (minutes on a laptop CPU). The paper-size study is `jaxatt reproduce batista-ges --runs 1000`, or from Python
+# `jaxatt.studies.reproduce(study, study.config(), runs=1000, json_path=..., plot_path=...)`.
 # The readings chosen where the papers are ambiguous are listed in `docs/observers/`.
 
 # %%
@@ -28,8 +31,8 @@ jax.config.update("jax_enable_x64", True)
 import matplotlib.pyplot as plt
 import numpy as np
 
-from jaxatt import montecarlo, plot
-from jaxatt.experiments import batista_ges, batista_so3
+from jaxatt import montecarlo, plot, studies
+from jaxatt.studies import batista_ges, batista_so3  # the study modules (their PLOT_PANELS)
 
 QUICK = os.environ.get("JAXATT_NOTEBOOK_QUICK", "0") == "1"
 FIG_DIR = Path(os.environ.get("JAXATT_FIGURE_DIR", "figures"))
@@ -46,28 +49,29 @@ def show(fig, name):
     plt.show()
 
 
-def study(E, runs=RUNS, seed=0):
-    """The Monte Carlo study of an experiment module at the paper's settings (dt from the mode)."""
-    cfg = E.Config(dt=DT)
-    res = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), runs=runs, duration=cfg.duration,
-                                 dt=cfg.dt, seed=seed, errors_fn=E.errors, window_start=cfg.window_start,
-                                 chunk=min(runs, 25), trace_every=TRACE_EVERY, validate=E.check_params)
-    print(f"{E.NAME}: {len(res.run_indices)} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz in {res.wall_s:.1f} s "
+def run_study(name, runs=RUNS, seed=0):
+    """The Monte Carlo of a study's observer at the paper's settings (dt from the mode)."""
+    st = studies.get(name)
+    s = st.setup(dt=DT)  # scenario, observer, params (paper gains), errors_fn, duration, dt, hold, window_start...
+    res = montecarlo.monte_carlo(s.scenario, s.observer, s.params, runs=runs, duration=s.duration, dt=s.dt,
+                                 seed=seed, errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold,
+                                 chunk=min(runs, 25), trace_every=TRACE_EVERY, validate=s.check_params)
+    print(f"{st.name}: {len(res.run_indices)} runs x {s.duration:g} s at {1 / s.dt:g} Hz in {res.wall_s:.1f} s "
           "(compile included)")
-    return cfg, res
+    return st, s, res
 
 
-def table(E, res, trajectory="slow"):
+def table(st, s, res):
     """Mean over runs of each per-run number beside the paper's (Table 2 and the mean angle error)."""
-    paper = E.PAPER[trajectory]
+    paper = dict(s.paper)  # the published numbers of this configuration's trajectory
     ours = {k: float(np.mean(v)) for k, v in res.per_run.items() if np.ndim(v) == 1}
     print(f"{'quantity':34s} {'jaxatt':>11s} {'paper':>11s} {'ratio':>7s}  unit")
-    for key, label in E.TABLE_ROWS:
+    for key, label in st.rows:
         if key not in ours:
             continue
         p = paper.get(key)
         ratio = f"{ours[key] / p:7.2f}" if p else " " * 7
-        print(f"{label:34s} {ours[key]:11.4g} {p if p is not None else '-':>11} {ratio}  {E.UNITS.get(key, 'deg')}")
+        print(f"{label:34s} {ours[key]:11.4g} {p if p is not None else '-':>11} {ratio}  {st.units.get(key, 'deg')}")
     return ours, paper
 
 
@@ -75,15 +79,15 @@ def table(E, res, trajectory="slow"):
 # ## batista-ges (GES observer in R^9 with Earth-rate estimation)
 
 # %%
-cfg_ges, mc_ges = study(batista_ges)
+st_ges, s_ges, mc_ges = run_study("batista-ges")
 trace0 = {k: v[0] for k, v in mc_ges.traces.items()}  # run 0, the single run of the figures
 fig = plot.convergence_plot(trace0, panels=batista_ges.PLOT_PANELS, mc_traces=mc_ges.traces,
-                            steady_from_s=cfg_ges.window_start,
+                            steady_from_s=s_ges.window_start,
                             title="batista-ges: initial convergence (Figs. 2-4) and angle error (Fig. 5)")
 show(fig, "02_ges_convergence")
 
 # %%
-ours_ges, paper_ges = table(batista_ges, mc_ges)
+ours_ges, paper_ges = table(st_ges, s_ges, mc_ges)
 RESULTS["ges_mean_angle_error_deg"] = ours_ges["mean_angle_error_deg"]
 RESULTS["ges_ratios"] = {k: ours_ges[k] / v for k, v in paper_ges.items() if k in ours_ges and v}
 
@@ -91,15 +95,15 @@ RESULTS["ges_ratios"] = {k: ours_ges[k] / v for k, v in paper_ges.items() if k i
 # ## batista-so3 (observer on SO(3), the same platform)
 
 # %%
-cfg_so3, mc_so3 = study(batista_so3)
+st_so3, s_so3, mc_so3 = run_study("batista-so3")
 trace0 = {k: v[0] for k, v in mc_so3.traces.items()}
 fig = plot.convergence_plot(trace0, panels=batista_so3.PLOT_PANELS, mc_traces=mc_so3.traces,
-                            steady_from_s=cfg_so3.window_start,
+                            steady_from_s=s_so3.window_start,
                             title="batista-so3: initial convergence (Figs. 2-3) and angle error (Fig. 4)")
 show(fig, "02_so3_convergence")
 
 # %%
-ours_so3, paper_so3 = table(batista_so3, mc_so3)
+ours_so3, paper_so3 = table(st_so3, s_so3, mc_so3)
 RESULTS["so3_mean_angle_error_deg"] = ours_so3["mean_angle_error_deg"]
 RESULTS["so3_ratios"] = {k: ours_so3[k] / v for k, v in paper_so3.items() if k in ours_so3 and v}
 
@@ -116,10 +120,10 @@ RESULTS["so3_ratios"] = {k: ours_so3[k] / v for k, v in paper_so3.items() if k i
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(7.5, 5.0), constrained_layout=True)
 skip = ("single_run_mean_angle_error_deg",)  # a single-run number, not a Monte Carlo mean
-for ax, E, ours, paper, mc in ((axes[0], batista_ges, ours_ges, paper_ges, mc_ges),
-                               (axes[1], batista_so3, ours_so3, paper_so3, mc_so3)):
-    plot.comparison_plot(ours, {k: v for k, v in paper.items() if k not in skip}, labels=dict(E.TABLE_ROWS),
-                         ax=ax, title=f"{E.NAME}, {len(mc.run_indices)} runs at {1 / DT:g} Hz")
+for ax, st, ours, paper, mc in ((axes[0], st_ges, ours_ges, paper_ges, mc_ges),
+                                (axes[1], st_so3, ours_so3, paper_so3, mc_so3)):
+    plot.comparison_plot(ours, {k: v for k, v in paper.items() if k not in skip}, labels=dict(st.rows),
+                         ax=ax, title=f"{st.name}, {len(mc.run_indices)} runs at {1 / DT:g} Hz")
 show(fig, "02_table2_comparison")
 
 # %% [markdown]

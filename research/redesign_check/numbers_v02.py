@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxatt import montecarlo, studies
-from jaxatt.fit import fitter, losses
-from jaxatt.fit import parametrize as P
+from jaxatt.fitting import fitter, losses
+from jaxatt.fitting import parametrize as P
 from jaxatt.observers import registry
 from jaxatt.studies import batista_ges, batista_so3, complementary
 from jaxatt.studies import nlio as X

@@ -1,4 +1,4 @@
-"""Gains files shipped with jaxatt (:mod:`jaxatt.fit.gainsfile` format), package data.
+"""Gains files shipped with jaxatt (:mod:`jaxatt.fitting.gainsfile` format), package data.
 
 * ``robust_broad_all.json``: :mod:`jaxatt.observers.robust_ahrs` tuned on all 20 BROAD trials of the shared subset:
   the gains of ``jaxatt.filter("robust", ...)`` (the registry entry's ``shipped``).
@@ -26,7 +26,7 @@ def available() -> List[str]:
 
 def path(name: str):
     """A path-like (importlib.resources Traversable) to the shipped gains file ``name``."""
-    from ...fit.gainsfile import shipped_path
+    from ...fitting.gainsfile import shipped_path
 
     return shipped_path(name)
 
@@ -40,7 +40,7 @@ def load(name: str = "robust_broad_all.json") -> dict:
 def load_params(which: str = "all", dtype=None):
     """Params of the robust AHRS with shipped gains: ``which`` = "all" (tuned on all 20 BROAD trials), "fold1" or
     "fold2" (one fold of the 2-fold cross-validation), or a file name."""
-    from ...fit import gainsfile
+    from ...fitting import gainsfile
 
     name = which if which.endswith(".json") else f"robust_broad_{which}.json"
     return gainsfile.load_shipped(name, "robust", dtype=dtype)

@@ -33,6 +33,10 @@ FORMAT = "jaxatt-gains/2"
 _OLD = "jaxatt-gains/1"
 
 #: The observer tuned in each study of jaxatt 0.1's gains files (``"experiment"`` key).
+#: keys of jaxatt 0.1's tune files -> this format's
+_RENAMED = {"tuning": "settings", "environment": "provenance", "start_gains": "start", "best_val_loss": "best_loss",
+            "start_val_loss": "start_loss"}
+
 STUDY_OBSERVER = {"batista-ges": "batista-ges", "batista-so3": "batista-so3", "nlio-case1": "nlio-fg",
                   "nlio-case2": "nlio-fg", "nlio-case3": "nlio-fg"}
 
@@ -97,9 +101,10 @@ def read(path) -> dict:
             raise ValueError(f"gains file {path}: needs 'observer' and 'gains'")
         return d
     if fmt == _OLD and isinstance(d.get("gains"), dict):
-        if "experiment" in d:  # jaxatt tune (0.1)
+        if "experiment" in d:  # jaxatt tune (0.1): its keys under this format's names
             study = d["experiment"]
-            return {**d, "format": FORMAT, "observer": STUDY_OBSERVER.get(study, study), "study": study}
+            renamed = {_RENAMED.get(k, k): v for k, v in d.items()}
+            return {**renamed, "format": FORMAT, "observer": STUDY_OBSERVER.get(study, study), "study": study}
         if "observer" in d:  # jaxatt broad-tune (0.1): {name: number}
             gains = {k: (v if isinstance(v, Mapping) else {"value": v}) for k, v in d["gains"].items()}
             return {**d, "format": FORMAT, "study": None, "gains": gains}
@@ -136,8 +141,9 @@ def apply(params, gains: Mapping[str, Any], *, source: str = "gains"):
 
 
 def read_params(path, entry=None, base=None, *, dtype=None):
-    """Params from a gains file: ``base`` (default: the registry entry's defaults in ``dtype``) with the file's gains
-    put in, checked by the entry. The file must hold gains of that observer."""
+    """Params from a gains file: ``base`` with the file's gains put in, checked by the entry. Default ``base``: the
+    paper's params of the file's study when it names one, else the registry entry's defaults in ``dtype``. The file
+    must hold gains of that observer."""
     d = read(path)
     if entry is not None:
         from ..observers import registry
@@ -145,6 +151,10 @@ def read_params(path, entry=None, base=None, *, dtype=None):
         entry = registry.get(entry)
         if d["observer"] != entry.name:
             raise ValueError(f"gains file {path}: holds gains of {d['observer']!r}, not of {entry.name!r}")
+        if base is None and d.get("study"):
+            from .. import studies
+
+            base = studies.get(d["study"]).setup().params
         if base is None:
             base = entry.default_params(dtype=dtype)
     if base is None:

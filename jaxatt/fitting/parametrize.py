@@ -1,4 +1,4 @@
-"""Constrained parametrizations of observer gains, for gradient-based tuning (:mod:`jaxatt.fit`).
+"""Constrained parametrizations of observer gains, for gradient-based tuning (:mod:`jaxatt.fitting`).
 
 An optimizer moves an unconstrained vector ``u``; a :class:`Transform` maps it to a gain that is always valid:
 

@@ -4,10 +4,10 @@ also holds what a resumed run needs (parameters, optimizer state, step, data ord
 
 * :func:`fit` (also ``jaxatt.fit``): the entry point. ``data`` is a list of BROAD trials
   (:func:`jaxatt.data.broad.load`; loss: the group-weighted mean of the per-trial total RMSE, deg) or a study name
-  (:mod:`jaxatt.studies`; loss: a :class:`jaxatt.fit.losses.LossSpec` over windows of the simulated runs).
+  (:mod:`jaxatt.studies`; loss: a :class:`jaxatt.fitting.losses.LossSpec` over windows of the simulated runs).
 * :func:`optimize`: the loop over unconstrained parameters, for any ``objective(theta, batch) -> (loss, aux)``.
 
-Gains are moved in an unconstrained space (:mod:`jaxatt.fit.parametrize`): positive gains in log space (Adam's
+Gains are moved in an unconstrained space (:mod:`jaxatt.fitting.parametrize`): positive gains in log space (Adam's
 steps are then relative changes, 0.05 ~ 5 %), SPD matrices through scaled Cholesky factors, schedules interval by
 interval; bounded gains are projected back into their bounds after each step.
 
@@ -126,7 +126,9 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
     after each update (bounds). A non-finite loss or gradient skips the update; three in a row stop the loop.
     KeyboardInterrupt ends the loop with status "interrupted" and what was found. ``on_save(result_so_far)`` is
     called after every step (write files there); ``resume`` (a previous result's ``resume``) continues a loop.
-    ``aux["metric"]`` (optional scalar) is shown and recorded.
+    ``aux["metric"]`` (optional scalar) is shown and recorded. History: one dict per step k with ``train_loss``
+    / ``train_metric`` of the params *before* update k (on step k's batch), ``grad_norm``, and, when validated,
+    ``val_loss`` / ``val_metric`` of the params *after* update k; step 0 holds the start's validation.
     """
     import optax
 
@@ -243,20 +245,14 @@ def _broad_weights(groups: Sequence[str]) -> np.ndarray:
 
 
 def recorded_objective(observer, bound: P.BoundParametrization, trials, *, hold: str = "next", dtype=None,
-                       step_remat: bool = True, checkpoint=None):
+                       step_remat: bool = True):
     """(objective(theta, batch), n_trials, take(indices) -> batch): the group-weighted mean per-trial total RMSE
     (deg, BROAD metric) of ``observer`` on ``trials``, through the whole scan (each step rematerialised in the
     reverse pass, so memory is one state per step and trial). ``aux["metric"]``: the same mean."""
     from ..data import broad as B
 
-    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    padded = B.pad_trials(trials)
-    item = B.batch_item(padded, dtype)
+    fn, item = B.metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat)
     groups = [t.group or B.group_of(t.name) for t in trials]
-    n_steps = int(padded.samples.t.shape[1]) - 1
-    segment = engine.segment_length(n_steps, checkpoint) if checkpoint else 0
-    fn = engine.compiled(observer, engine.Recorded(n_steps, False), B.METRIC_REDUCER, hold=hold, obs_dtype=dtype,
-                         segment=segment, step_remat=step_remat)
 
     def take(idx):
         idx = np.asarray(idx)
@@ -264,7 +260,7 @@ def recorded_objective(observer, bound: P.BoundParametrization, trials, *, hold:
         return {"item": jax.tree_util.tree_map(lambda a: a[idx], item), "weight": jnp.asarray(w)}
 
     def objective(theta, batch):
-        rmse = fn(None, bound.constrain(theta), batch["item"]).summary["total_rmse_deg"]
+        rmse = fn(bound.constrain(theta), batch["item"])["total_rmse_deg"]
         loss = jnp.sum(batch["weight"].astype(rmse.dtype) * rmse)
         return loss, {"metric": loss, "rmse_deg": rmse}
 
@@ -273,8 +269,8 @@ def recorded_objective(observer, bound: P.BoundParametrization, trials, *, hold:
 
 def simulated_objective(setup, bound: P.BoundParametrization, spec, *, dtype=None, checkpoint="auto",
                         step_remat=None, devices=None):
-    """objective(theta, keys): the :class:`~jaxatt.fit.losses.LossSpec` loss of the study set-up's observer over the
-    runs of ``keys`` (:func:`jaxatt.fit.losses.make_loss_fn`). ``aux["metric"]``: the mean angle error (deg) over
+    """objective(theta, keys): the :class:`~jaxatt.fitting.losses.LossSpec` loss of the study set-up's observer over the
+    runs of ``keys`` (:func:`jaxatt.fitting.losses.make_loss_fn`). ``aux["metric"]``: the mean angle error (deg) over
     the first window."""
     from . import losses
 
@@ -368,7 +364,7 @@ def fit(observer=None, params=None, data=None, *, steps: int = 100, lr: float = 
             resume state). ``resume``: continue from it. ``overwrite``: replace a finished one.
         dtype: arithmetic (default: float64 when x64 is on for studies; for trials the data's).
         loss, transient_weight, config, refine_schedule, checkpoint, step_remat, devices: study options
-            (:mod:`jaxatt.fit.losses`, :func:`jaxatt.schedule.refine`).
+            (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`).
     Returns :class:`FitResult`. Raises ValueError (one line) on bad arguments.
     """
 

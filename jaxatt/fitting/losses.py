@@ -14,7 +14,7 @@
   more forward pass of compute.
 
 The loss on recorded trials (the BROAD metric) is :data:`jaxatt.data.broad.METRIC_REDUCER`, used by
-:mod:`jaxatt.fit.fitter`.
+:mod:`jaxatt.fitting.fitter`.
 
 Conventions: rotations map body to reference (v_ref = R v_body); angles in degrees (``_deg``); times in s.
 """
@@ -82,7 +82,7 @@ class LossSpec(NamedTuple):
 
     Fields:
         kind: a key of :data:`POINTWISE` or a hashable callable ``e(truth, out) -> scalar``.
-        windows: ((name, start_s, end_s, weight), ...); a sample at t (the output time t_k+1) is in a window
+        windows: ((name, start_s, end_s, weight), ...); an estimate at t (estimate k, at t_k, k >= 1) is in a window
             when start_s <= t < end_s (``end_s = inf`` for open ended; the steady-state window of
             ``monte_carlo`` is ``(window_start, inf)`` and gives its ``mean_angle_error_deg`` exactly).
     """
