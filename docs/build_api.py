@@ -183,11 +183,26 @@ def build() -> str:
     return "\n".join(out).rstrip() + "\n"
 
 
+README = HERE.parent / "README.md"
+BEGIN, END = "<!-- observers table: python docs/build_api.py -->", "<!-- end of observers table -->"
+
+
+def readme_with_observers() -> str:
+    """README.md with the block between the markers replaced by the registry's table."""
+    from jaxatt.observers import registry
+
+    text = README.read_text(encoding="utf-8")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{registry.markdown_table()}\n{END}{tail}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Generate docs/api.md from jaxatt's docstrings.")
     ap.add_argument("--check", action="store_true", help="exit 1 if docs/api.md is out of date")
     ap.add_argument("--stdout", action="store_true", help="print the reference instead of writing it")
     args = ap.parse_args(argv)
+    readme = readme_with_observers()
     text = build()
     if args.stdout:
         sys.stdout.write(text)
@@ -196,8 +211,12 @@ def main(argv=None) -> int:
         if not OUT.exists() or OUT.read_text(encoding="utf-8") != text:
             print("docs/api.md is out of date: run python docs/build_api.py", file=sys.stderr)
             return 1
+        if README.read_text(encoding="utf-8") != readme:
+            print("README.md's observers table is out of date: run python docs/build_api.py", file=sys.stderr)
+            return 1
         return 0
     OUT.write_text(text, encoding="utf-8")
+    README.write_text(readme, encoding="utf-8")
     print(f"wrote {OUT} ({len(text.splitlines())} lines)")
     return 0
 

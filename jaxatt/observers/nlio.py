@@ -476,7 +476,8 @@ _G_K2 = registry.Gain("k2", "1/s", "auxiliary-observer gain K2 of the magnetomet
 _G_TV = (registry.Gain("gyro_noise_std", "rad/s", "gyro noise std of the Riccati recursion (NLIO-TV)"),
          registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance R_1 (NLIO-TV), 3x3 SPD", "spd"),
          registry.Gain("r_mag", "unit^2", "magnetometer noise covariance R_2 (NLIO-TV), 3x3 SPD", "spd"))
-_COMMON = dict(reference="sensors2020 (Fusion of an interconnected observer), eqs. (10)-(14), (17), (28)-(30)",
+_COMMON = dict(reference="sensors2020 (nonlinear interconnected observer with gyro-bias estimation), eqs. (10)-(14), "
+                         "(17), (28)-(30)",
                default_params=_recorded_defaults, setup=_setup_recorded,
                setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"), frame="ENU", hold="next", module="nlio",
                check=check_params)

@@ -26,7 +26,7 @@ from .. import so3
 from ..types import Observer
 
 __all__ = ["Gain", "Entry", "INDEX", "names", "get", "register", "recorded_observer", "CONSTRAINTS",
-           "first_sample_frame"]
+           "first_sample_frame", "markdown_table"]
 
 #: Constraints a gain can declare (the fitter maps each to a transform, :mod:`jaxatt.fitting.parametrize`):
 #: "positive" (elementwise > 0, learnt in log space), "schedule" (a positive piecewise-constant gain, one value per
@@ -154,6 +154,16 @@ def get(name: str) -> Entry:
         if e.name == name:
             return e
     raise ValueError(f"module jaxatt.observers.{INDEX[name]} declares no entry {name!r}")  # pragma: no cover
+
+
+def markdown_table() -> str:
+    """The table of the registered observers (name, module, reference, summary) in Markdown: the README's
+    observers table is this text (``python docs/build_api.py`` writes it there)."""
+    rows = ["| name | module | reference | what it estimates |", "|---|---|---|---|"]
+    for n in INDEX:
+        e = get(n)
+        rows.append(f"| `{e.name}` | `jaxatt.observers.{e.module}` | {e.reference} | {e.summary} |")
+    return "\n".join(rows)
 
 
 def register(entry: Entry) -> Entry:
