@@ -1,5 +1,5 @@
-"""Excitation / observability measures of Trumpf et al. (2012), Sections III-IV
-(../shared/papers/trumpf2012-time-varying-reference-observers.txt), for a scenario or a log.
+"""Excitation / observability measures of Trumpf, Mahony, Hamel, Lageman (IEEE TAC 2012), Sections III-IV, for a
+scenario or a log.
 
 For directions v: R -> S^2 and a window [t, t + T] (T = ``window``, s):
 

@@ -2,7 +2,7 @@
 
 Observers are continuous-time ODEs driven by sampled sensor inputs. A step from t_k to t_k + dt needs the
 input at the RK4 stage times t_k, t_k + dt/2, t_k + dt. Two readings exist (the papers do not say which they
-used, see ../shared/papers/NOTES.md):
+used; docs/observers/batista_ges.md discusses both):
 
 * ``hold="zoh"`` (default): the sample taken at t_k is held over the step. Causal; what a real-time
   implementation does.

@@ -242,18 +242,22 @@ def _pick_sample_truth(t, truth, out):
     return out, truth
 
 
-def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_index: int = 0):
-    """A simulated log (samples at t_0 ... t_N) and its truth, with the same noise stream as :func:`simulate`.
+def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_index: int = 0, key=None):
+    """A simulated log (samples at t_0 ... t_N) and its truth, with the same noise stream as :func:`simulate`
+    (run ``run_index`` of ``seed``; or the run key ``key`` itself when given).
 
     Returns (sample pytree of (N+1,)/(N+1, 3) arrays, truth of stacked arrays), in the simulator's precision.
     Holds the whole trajectory: meant for short runs, tests and for feeding :func:`run`.
     """
     dt = check_dt(dt)
     n_steps = int(round(duration / dt))
+    if n_steps < 1:
+        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    keys = run_keys(seed, [run_index]) if key is None else jnp.asarray(key)[None]
     _, sim_dtype = _dtypes(None)
     fn = engine.compiled(_SAMPLES, engine.Simulated(n_steps, dt, sim_dtype), engine.records_of(_pick_sample_truth, 1),
                   hold="next", obs_dtype=sim_dtype)
-    samples, truth = fn(scenario, None, run_keys(seed, [run_index])).records
+    samples, truth = fn(scenario, None, keys).records
     return jax.tree_util.tree_map(lambda a: a[0], samples), jax.tree_util.tree_map(lambda a: a[0], truth)
 
 

@@ -1,5 +1,5 @@
 """GES cascade attitude observer with Earth-velocity estimation (Batista, Silvestre, Oliveira, Asian J.
-Control 2019; ../shared/papers/batista2019-ges-attitude-earth-velocity.txt).
+Control 2019).
 
 Inputs: high-grade gyro ``gyr`` = omega + omega_E (rad/s, body; eq. 4, sensitive to the Earth's rate) and ONE
 body-frame vector measurement ``mag`` = R^T I_m of a constant, known inertial vector (eq. 6; any unit, e.g. nT).
@@ -16,7 +16,7 @@ Blocks (all cited by equation of that paper):
 * Estimate on SO(3), Theorem 3: if ||R^T R - I||_F <= eps the projection of R^ onto SO(3), otherwise
   R_f propagated with dR_f/dt = R_f S(gyr - omega_E^).
 
-Readings chosen where the paper is open (see ../shared/papers/NOTES.md and docs):
+Readings chosen where the paper is open (also in docs/observers/batista_ges.md):
 
 * Q only enters (21) through C2^T Q^-1. We store the equivalent z-space gain G = C2^T Q^-1 C2 (9x9, SPD iff Q
   is) and inject G (C2^-1 y^ - z2^). C2^-1 = M^-1 (x) I3 is cheap because the rows of M are orthogonal, and this

@@ -1,5 +1,5 @@
 """Cascade attitude observer on SO(3) with Earth-velocity estimation (Batista, Silvestre, Oliveira, Systems &
-Control Letters 126 (2019) 33-39; ../shared/papers/batista2019-so3-attitude-earth-velocity.txt).
+Control Letters 126 (2019) 33-39).
 
 Inputs: high-grade gyro ``gyr`` = omega + omega_E (rad/s, body; eq. 2, sensitive to the Earth's rate) and ONE
 body-frame vector measurement ``mag`` = m = R^T I_m of a constant, known inertial vector (eq. 3; any unit,
@@ -29,7 +29,7 @@ Integration (a choice of this library; the paper says "fourth-order Runge-Kutta"
   (identities in exact arithmetic); both hold at rounding level over 1e6 steps.
 * ``integrator="rk4"``: classical RK4 on (m^, v^, R^) as 15 numbers (the paper's method); R^ and |m^| drift.
 
-Readings chosen (see ../shared/papers/NOTES.md):
+Readings chosen (also in docs/observers/batista_so3.md):
 
 * Table 1's columns are alpha1 |I_m|^2 and alpha2 (then after 720 s the linearised first block is
   s^2 + 2.5 s + 0.005, the same as the GES paper's Table 1 after 720 s). alpha0 = 0.1/|I_m|^2,

@@ -1,6 +1,6 @@
 """Complementary / compatible vector-measurement attitude observer on SO(3) with time-varying references
 (Trumpf, Mahony, Hamel, Lageman, IEEE TAC 2012, "Analysis of non-linear attitude observers for time-varying
-reference measurements"; ../shared/papers/trumpf2012-time-varying-reference-observers.txt), with the optional
+reference measurements"), with the optional
 gyro-bias integrator of Mahony, Hamel, Pflimlin (IEEE TAC 2008, passive complementary filter).
 
 Frames and conventions (as everywhere in jaxatt): R maps body coordinates to the inertial frame, v_A = R v_B;

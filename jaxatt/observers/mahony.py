@@ -6,7 +6,7 @@ References:
   IEEE Trans. Automatic Control 53(5), 2008: the *explicit complementary filter with bias correction*,
   dR/dt = R (Omega_y - b + kP w_mes)x,  db/dt = -kI w_mes,  w_mes = sum_i k_i v_i x v^_i.
 * J. Trumpf, R. Mahony, T. Hamel, C. Lageman, "Analysis of non-linear attitude observers for time-varying
-  reference measurements", IEEE TAC 2012 (../shared/papers/trumpf2012-time-varying-reference-observers.txt):
+  reference measurements", IEEE TAC 2012:
   the observer is their eq. (10) (the passive / explicit complementary filter) with n1 = 2 body-frame measurements
   a_1 = acc, a_2 = mag, n2 = 0, gains k_i = Kp and *constant* references a_1 = e_z, a_2 = b, plus Mahony's
   integral bias estimate (eq. 10 itself has no bias term).

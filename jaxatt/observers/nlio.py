@@ -1,5 +1,5 @@
-"""Attitude and gyro-bias observers of sensors2020-interconnected-observer-gyro-bias (Sensors 2020, 20, 6514;
-../shared/papers/sensors2020-interconnected-observer-gyro-bias.txt): NLO, NLIO-FG and NLIO-TV.
+"""Attitude and gyro-bias observers of the sensors2020 paper on a nonlinear interconnected observer with gyro-bias
+estimation (Sensors 2020, 20, 6514): NLO, NLIO-FG and NLIO-TV.
 
 Inputs: gyro ``gyr`` = omega + b (rad/s, body), two body-frame vector measurements ``acc`` = R^T v_1^N and
 ``mag`` = R^T v_2^N of constant, known, non-parallel references (Assumption 1), e.g. gravity in m/s^2 and the
@@ -23,7 +23,7 @@ magnetic field in gauss (NED in the paper). R maps body to NED. The attitude obs
       K_k = P_k|k-1 (P_k|k-1 + R_i)^-1,  P_k|k = (I - K_k) P_k|k-1 (Joseph form),  P_k+1|k = F P_k|k F^T + Q_k.
   Sigma_1 and Sigma_2 are integrated together (one RK4 step of the joint ODE).
 
-Readings chosen where the paper is open (see also ../shared/papers/NOTES.md):
+Readings chosen where the paper is open (also in docs/observers/nlio.md):
 
 * A_B, A_N (``triad``, :func:`triad_matrix`). Eqs. (10)-(11) print [v1, v2, v1 x v2]; the text says "referencing
   the TRIAD algorithm [4]". In raw units (m/s^2, gauss) A_N A_N^T has eigenvalues up to ~96, so Kp = 15 puts a

@@ -1,4 +1,4 @@
-"""Scenarios of Trumpf et al. (2012) (../shared/papers/trumpf2012-time-varying-reference-observers.txt):
+"""Scenarios of Trumpf et al. (2012) (IEEE TAC 2012, "Analysis of non-linear attitude observers for time-varying reference measurements"):
 vector measurements of possibly time-varying reference directions, as pure-JAX generators of the true
 attitude and :class:`jaxatt.types.VectorSample` logs.
 
@@ -29,7 +29,6 @@ the runner's per-run block stream there).
 """
 from __future__ import annotations
 
-import functools
 import math
 from typing import NamedTuple, Optional
 
@@ -322,33 +321,14 @@ def simulate_vectors(scenario: VectorScenario, duration: float, dt: float, key: 
 
     Returns ``(samples, truth_r)``: a :class:`VectorSample` of stacked arrays (t (N+1,), gyr (N+1, 3),
     body_meas / ref_inertial (N+1, n1, 3), inertial_meas / ref_body (N+1, n2, 3)) and R(t_k) (N+1, 3, 3).
-    gyr = Omega + gyro_bias + noise; a_i = R^T å_i + noise; b_j = R b̊_j + noise (not renormalised).
-    ``key`` (a jax PRNG key) is required when the scenario has noise; None gives a noise-free log.
+    gyr = Omega + gyro_bias + noise; a_i = R^T a_ref_i + noise; b_j = R b_ref_j + noise (not renormalised).
+    ``key`` (a jax PRNG key, used as a run key of :func:`jaxatt.montecarlo.simulate_log`) is required when the
+    scenario has noise; None gives a noise-free log.
     """
-    dt = float(dt)
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
-    n_steps = int(round(float(duration) / dt))
-    if n_steps < 1:
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    from ..montecarlo import simulate_log
+
     noisy = float(scenario.gyro_noise_std) > 0 or float(scenario.meas_noise_std) > 0
     if noisy and key is None:
         raise ValueError("the scenario has noise: pass an explicit PRNG key (jax.random.PRNGKey(seed))")
-    return _simulate(scenario, n_steps, dt, key if noisy else None)
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _simulate(scn: VectorScenario, n_steps: int, dt: float, key):
-    dtype = scn.r0.dtype
-    t = jnp.arange(n_steps + 1, dtype=dtype) * dt
-
-    def body(r, tk):
-        r_next = scn.propagate(r, tk, dt)
-        return r_next, r_next
-
-    _, rs = jax.lax.scan(body, scn.r0, t[:-1])
-    truth_r = jnp.concatenate([scn.r0[None], rs], axis=0)
-    shape = (n_steps + 1, scn.n_channels)
-    noise = jnp.zeros(shape, dtype) if key is None else jax.random.normal(key, shape, dtype)
-    samples = jax.vmap(lambda r, tk, n: scn.sample(scn.truth_at(r, tk), n, dt))(truth_r, t, noise)
-    return samples, truth_r
+    samples, truth = simulate_log(scenario, duration=duration, dt=dt, key=jax.random.PRNGKey(0) if key is None else key)
+    return samples, truth.r
