@@ -23,15 +23,25 @@ from jaxatt.types import ImuSample
 from broad_data import DATA, PUBLISHED, need_data  # noqa: E402
 
 
-def broad_protocol_quats(trial, kp, ki, dtype):
+def _q_nwu(t, truth, out):
+    return out.q_nwu
+
+
+def broad_protocol_quats(trials, kp, ki, dtype):
     """BROAD's example code: setState from sample 0 (start computed in float64), then the filter (its C code, in
     ``dtype``) updates with samples 0 ... N-1 (sample 0 a second time); its sensor-to-NWU output is rotated into
     ENU in float64. In jaxatt's alignment (T estimates, estimate 0 = init's, hold="next": estimate k uses sample k)
-    that is the log with sample 0 duplicated, estimates 1 ... N."""
-    dup = jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), trial.samples)
-    run = montecarlo.log_runner(mahony.make_observer("broad"), "next", dtype=dtype)
-    out = run(mahony.default_params(kp, ki, dtype=dtype), dup, broad.step_dt(trial.rate_hz, dtype))
-    return frames.change_frame(np.asarray(out.q_nwu, np.float64)[1:], "ENU", "NWU")
+    that is the log with sample 0 duplicated, estimates 1 ... N. Every trial in one padded batch (one compile);
+    returns the list of (N, 4) sensor-to-ENU estimates."""
+    dup = [tr._replace(samples=jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples),
+                       quat_true=np.concatenate([tr.quat_true[:1], tr.quat_true]),
+                       movement=np.concatenate([[False], tr.movement])) for tr in trials]
+    padded = broad.pad_trials(dup)
+    item = {**broad.batch_item(padded, dtype), "truth": None}
+    fn = engine.compiled(mahony.make_observer("broad"), engine.Recorded(padded.samples.t.shape[1] - 1),
+                         engine.records_of(_q_nwu, 1), hold="next", obs_dtype=jnp.dtype(dtype))
+    q_nwu = np.asarray(fn(None, mahony.default_params(kp, ki, dtype=dtype), item).records, np.float64)
+    return [frames.change_frame(q_nwu[i, 1:n], "ENU", "NWU") for i, n in enumerate(padded.lengths)]
 
 
 def random_quats(rng, n, scale=1.0):
@@ -404,8 +414,9 @@ def test_published_mahony_float64():
     reference (measured max 5.6e-4 deg over 20 trials x 3 metrics; the errors themselves are 0.7-41 deg)."""
     pub, names = published_trials()
     diffs = []
-    for tr in broad.load_trials(DATA, names):
-        res = broad.broad_errors(broad_protocol_quats(tr, *mahony.BROAD_TAGP, "float64"), tr.quat_true, tr.movement)
+    trials = broad.load_trials(DATA, names)
+    for tr, q in zip(trials, broad_protocol_quats(trials, *mahony.BROAD_TAGP, "float64")):
+        res = broad.broad_errors(q, tr.quat_true, tr.movement)
         diffs += [res[k] - pub["trials"][tr.name]["tagp_parameters"][k] for k in broad.METRICS]
     assert max(abs(d) for d in diffs) < 2e-3, max(abs(d) for d in diffs)
 
@@ -418,8 +429,9 @@ _EXACT_SCRIPT = textwrap.dedent("""
     from test_broad import broad_protocol_quats
     from jaxatt.data import broad
     data, names = sys.argv[1], sys.argv[2].split(",")
-    res = {tr.name: broad.broad_errors(broad_protocol_quats(tr, 0.74, 0.0012, "float32"), tr.quat_true, tr.movement)
-           for tr in broad.load_trials(data, names)}
+    trials = broad.load_trials(data, names)
+    res = {tr.name: broad.broad_errors(q, tr.quat_true, tr.movement)
+           for tr, q in zip(trials, broad_protocol_quats(trials, 0.74, 0.0012, "float32"))}
     print("RESULT" + json.dumps(res))
 """)
 
