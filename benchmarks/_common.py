@@ -3,6 +3,7 @@
 Every benchmark writes one JSON file ``<out>/<name>-<hostname>-<UTC timestamp>.json`` holding ``meta``
 (:func:`metadata`) and its own numbers, so results from different machines and commits can be compared.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -19,8 +20,21 @@ import sys
 import time
 from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence
 
-__all__ = ["RESULTS_DIR", "REPO_ROOT", "metadata", "jax_info", "machine_info", "versions", "git_info",
-           "peak_rss_mib", "time_it", "write_results", "format_table", "print_table", "utc_now"]
+__all__ = [
+    "RESULTS_DIR",
+    "REPO_ROOT",
+    "metadata",
+    "jax_info",
+    "machine_info",
+    "versions",
+    "git_info",
+    "peak_rss_mib",
+    "time_it",
+    "write_results",
+    "format_table",
+    "print_table",
+    "utc_now",
+]
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 RESULTS_DIR = REPO_ROOT / "benchmarks" / "results"
@@ -95,11 +109,15 @@ def versions() -> Dict[str, Any]:
 
 def git_info() -> Dict[str, Any]:
     """Commit and whether the working tree differs from it (results of uncommitted code say so)."""
+
     def git(*args):
         try:
-            return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10).stdout.rstrip()
+            return subprocess.run(
+                ["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, timeout=10
+            ).stdout.rstrip()
         except Exception:  # noqa: BLE001
             return ""
+
     commit = git("rev-parse", "HEAD").strip()
     if not commit:
         return {"commit": None, "dirty": None, "modified": []}
@@ -119,8 +137,16 @@ def jax_info() -> Dict[str, Any]:
     }
 
 
-_ENV_KEYS = ("XLA_FLAGS", "JAX_PLATFORMS", "JAX_ENABLE_X64", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
-             "OPENBLAS_NUM_THREADS", "CUDA_VISIBLE_DEVICES", "XLA_PYTHON_CLIENT_PREALLOCATE")
+_ENV_KEYS = (
+    "XLA_FLAGS",
+    "JAX_PLATFORMS",
+    "JAX_ENABLE_X64",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "CUDA_VISIBLE_DEVICES",
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+)
 
 
 def metadata(argv: Optional[Sequence[str]] = None) -> Dict[str, Any]:
@@ -146,8 +172,9 @@ def peak_rss_mib() -> float:
     return r / 2**20 if sys.platform == "darwin" else r / 1024
 
 
-def time_it(fn: Callable[[], Any], *, repeats: int = 3, min_time: float = 0.0, sync: Callable[[Any], Any] = None
-            ) -> Dict[str, Any]:
+def time_it(
+    fn: Callable[[], Any], *, repeats: int = 3, min_time: float = 0.0, sync: Callable[[Any], Any] = None
+) -> Dict[str, Any]:
     """Wall times (s) of ``repeats`` calls of ``fn`` (already warm), more while their sum < ``min_time``.
 
     ``sync(result)`` blocks until the result is ready (e.g. ``jax.block_until_ready``).

@@ -47,6 +47,7 @@ The external filters' estimates are scored with :func:`jaxatt.data.broad.broad_e
 ``jaxatt.broad_score`` (mean of the per-trial RMSEs over the trials of each group).
 Samples/s: total samples / wall time of the filter loop only (data loading and metric excluded).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,9 +68,14 @@ G = 9.81
 SPECIAL = ("jaxatt-robust", "jaxatt-robust-oof", "jaxatt-mahony-broad")
 EXTERNAL = ("vqf-online", "vqf-offline", "ahrs-madgwick", "ahrs-mahony", "imufusion")
 #: The anchor of each filter (jaxatt.data.broad.ANCHORS; "ahrs Mahony (BROAD best)" = BROAD's published Mahony).
-ANCHOR_KEY = {"jaxatt-mahony-broad": "ahrs Mahony (BROAD best)", "vqf-online": "VQF online 9D",
-              "vqf-offline": "VQF offline 9D", "ahrs-madgwick": "ahrs Madgwick beta=0.12",
-              "ahrs-mahony": "ahrs Mahony (BROAD best)", "imufusion": "imufusion defaults"}
+ANCHOR_KEY = {
+    "jaxatt-mahony-broad": "ahrs Mahony (BROAD best)",
+    "vqf-online": "VQF online 9D",
+    "vqf-offline": "VQF offline 9D",
+    "ahrs-madgwick": "ahrs Madgwick beta=0.12",
+    "ahrs-mahony": "ahrs Mahony (BROAD best)",
+    "imufusion": "imufusion defaults",
+}
 
 
 def filter_names():
@@ -110,8 +116,11 @@ def run_ahrs(tr, kind):
 
     g, a, m = (np.asarray(x, dtype=np.float64) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag))
     dt = 1.0 / tr.rate_hz
-    f = Madgwick(frequency=tr.rate_hz, beta=0.12) if kind == "madgwick" else \
-        Mahony(frequency=tr.rate_hz, k_P=0.74, k_I=0.0012)
+    f = (
+        Madgwick(frequency=tr.rate_hz, beta=0.12)
+        if kind == "madgwick"
+        else Mahony(frequency=tr.rate_hz, k_P=0.74, k_I=0.0012)
+    )
     q = _triad(a[0], m[0], "NWU" if kind == "madgwick" else "ENU")
     out = np.empty((len(g), 4))
     t0 = time.perf_counter()
@@ -179,8 +188,13 @@ def run_jaxatt_robust(trials, gains, repeats):
     per = None
     for dtype in ("float32", "float64"):
         p = robust_params(gains, dtype)
-        fn = engine.compiled(obs, engine.Recorded(n_steps, False), engine.records_of(_pick_q, 1), hold=entry.hold,
-                             obs_dtype=np.dtype(dtype))
+        fn = engine.compiled(
+            obs,
+            engine.Recorded(n_steps, False),
+            engine.records_of(_pick_q, 1),
+            hold=entry.hold,
+            obs_dtype=np.dtype(dtype),
+        )
         item = jax.device_put({**broad.batch_item(padded, dtype), "truth": None})  # arrays on the device first
         t0 = time.perf_counter()
         q = jax.block_until_ready(fn(None, p, item).records)
@@ -191,8 +205,12 @@ def run_jaxatt_robust(trials, gains, repeats):
             q = jax.block_until_ready(fn(None, p, item).records)
             times.append(time.perf_counter() - t0)
         med = statistics.median(times)
-        timing[dtype] = {"first_call_s": first, "times_s": times, "median_s": med,
-                         "samples_per_s": float(n.sum() / med)}
+        timing[dtype] = {
+            "first_call_s": first,
+            "times_s": times,
+            "median_s": med,
+            "samples_per_s": float(n.sum() / med),
+        }
         if dtype == "float32":
             q = np.asarray(q, np.float64)
             per = {tr.name: broad.broad_errors(q[i, : n[i]], tr.quat_true, tr.movement) for i, tr in enumerate(trials)}
@@ -207,8 +225,11 @@ def run_jaxatt_robust(trials, gains, repeats):
         t0 = time.perf_counter()
         jaxatt.filter("robust", *args, dt=1.0 / tr.rate_hz, params=p, dtype="float32")
         tot += time.perf_counter() - t0
-    timing["unbatched_float32"] = {"total_s": tot, "samples_per_s": float(n.sum() / tot),
-                                   "how": "jaxatt.filter per trial, warm"}
+    timing["unbatched_float32"] = {
+        "total_s": tot,
+        "samples_per_s": float(n.sum() / tot),
+        "how": "jaxatt.filter per trial, warm",
+    }
     return per, timing
 
 
@@ -264,8 +285,7 @@ def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
             if None in train_trials:
                 train_trials = broad.load(data_dir, train)
             print(f"  fold {k}: fitting on {len(train)} trials -> {path} ...", flush=True)
-            jaxatt.fit("robust", None, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path),
-                       overwrite=True)
+            jaxatt.fit("robust", None, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path), overwrite=True)
         else:
             path = pathlib.Path(str(shipped.path(f"robust_broad_fold{k}.json")))
         payload = gainsfile.read(path)
@@ -293,14 +313,21 @@ def _groups(per):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data-dir", default=str(C.REPO_ROOT.parent / "shared" / "data" / "broad"))
-    ap.add_argument("--filters", nargs="+", default=None,
-                    help="rows to run (default all): jaxatt-robust, jaxatt-robust-oof, jaxatt-<registered name>, "
-                         f"jaxatt-mahony-broad, {', '.join(EXTERNAL)}")
+    ap.add_argument(
+        "--filters",
+        nargs="+",
+        default=None,
+        help="rows to run (default all): jaxatt-robust, jaxatt-robust-oof, jaxatt-<registered name>, "
+        f"jaxatt-mahony-broad, {', '.join(EXTERNAL)}",
+    )
     ap.add_argument("--trials", nargs="*", default=None, help="names, numbers, groups or fold1/fold2 (default all)")
     ap.add_argument("--gains", default="all", help="robust AHRS gains: shipped name (all, fold1, fold2) or a path")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--retrain-folds", action="store_true",
-                    help="re-learn the fold gains of the out-of-fold row first (jaxatt.fit, minutes per fold)")
+    ap.add_argument(
+        "--retrain-folds",
+        action="store_true",
+        help="re-learn the fold gains of the out-of-fold row first (jaxatt.fit, minutes per fold)",
+    )
     ap.add_argument("--steps", type=int, default=40, help="--retrain-folds: Adam steps")
     ap.add_argument("--lr", type=float, default=0.05, help="--retrain-folds: learning rate")
     ap.add_argument("--folds-dir", default=".", help="--retrain-folds: where robust_broad_fold{k}.json are written")
@@ -330,19 +357,30 @@ def main(argv=None) -> int:
             per, extra = run_jaxatt_robust(trials, args.gains, args.repeats)
             wall = n_samples / extra["float32"]["samples_per_s"]
         elif flt == "jaxatt-robust-oof":
-            per, folds, wall = run_jaxatt_robust_oof(args.data_dir, trials, retrain=args.retrain_folds,
-                                                     steps=args.steps, lr=args.lr, folds_dir=args.folds_dir)
+            per, folds, wall = run_jaxatt_robust_oof(
+                args.data_dir,
+                trials,
+                retrain=args.retrain_folds,
+                steps=args.steps,
+                lr=args.lr,
+                folds_dir=args.folds_dir,
+            )
             extra = {"folds": folds, "note": "wall includes compile; each trial scored with the other fold's gains"}
         elif flt == "jaxatt-mahony-broad":
             per, wall = run_jaxatt_mahony_broad(trials)
             extra = {"note": "BROAD's protocol (start, sample 0 twice), float64; wall includes compile"}
         elif flt.startswith("jaxatt-"):  # a registered observer through the front door
-            name = flt[len("jaxatt-"):]
+            name = flt[len("jaxatt-") :]
             sc = jaxatt.broad_score(name, None, trials)
             warm = jaxatt.broad_score(name, None, trials).wall_s
             per = {n: {m: getattr(v, m) for m in broad.METRICS} for n, v in sc.trials.items()}
-            wall, extra = warm, {"first_call_s": sc.wall_s, "note": "warm jaxatt.broad_score call (padding, scan, "
-                                 "metric), float64, default gains"}
+            wall, extra = (
+                warm,
+                {
+                    "first_call_s": sc.wall_s,
+                    "note": "warm jaxatt.broad_score call (padding, scan, metric), float64, default gains",
+                },
+            )
         else:
             for tr in trials:
                 if flt.startswith("vqf"):
@@ -356,8 +394,13 @@ def main(argv=None) -> int:
         per = {tr.name: {**per[tr.name], "group": tr.group or broad.group_of(tr.name)} for tr in trials}
         groups = _groups(per)
         timed = wall > 0 and flt != "jaxatt-robust-oof"  # the out-of-fold row's wall is scoring + compiling
-        results[flt] = {"trials": per, "groups": groups, "wall_s": wall,
-                        "samples_per_s": n_samples / wall if timed else None, **extra}
+        results[flt] = {
+            "trials": per,
+            "groups": groups,
+            "wall_s": wall,
+            "samples_per_s": n_samples / wall if timed else None,
+            **extra,
+        }
         rate = f"  ({n_samples / wall:.3g} samples/s)" if timed else ""
         print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items()) + rate, flush=True)
 
@@ -368,16 +411,32 @@ def main(argv=None) -> int:
         anc = f"{a['undisturbed']:.2f} / {a['disturbed']:.2f}" if a else ""
         g = r["groups"]
         sps = f"{r['samples_per_s']:11.3g}" if r["samples_per_s"] else f"{'-':>11s}"
-        print(f"{flt:21s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
-              f"{g.get('disturbed', {}).get('total_rmse_deg', float('nan')):10.2f} {anc:>14s} {sps}")
+        print(
+            f"{flt:21s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
+            f"{g.get('disturbed', {}).get('total_rmse_deg', float('nan')):10.2f} {anc:>14s} {sps}"
+        )
     if "jaxatt-robust" in results:
         t = results["jaxatt-robust"]
-        print(f"jaxatt robust, all trials batched: {t['float32']['samples_per_s']:.3g} samples/s float32, "
-              f"{t['float64']['samples_per_s']:.3g} float64; one trial at a time {t['unbatched_float32']['samples_per_s']:.3g}"
-              f" (load average {os.getloadavg()[0]:.1f})")
-    path = C.write_results("broad", {"settings": vars(args), "n_samples": n_samples, "trials": names,
-                                     "results": results, "anchors": broad.ANCHORS, "data": broad.ATTRIBUTION,
-                                     "load_avg_at_end": os.getloadavg()}, out_dir=args.out, meta=meta)
+        print(
+            f"jaxatt robust, all trials batched: {t['float32']['samples_per_s']:.3g} samples/s float32, "
+            f"{t['float64']['samples_per_s']:.3g} float64; one trial at a time "
+            f"{t['unbatched_float32']['samples_per_s']:.3g}"
+            f" (load average {os.getloadavg()[0]:.1f})"
+        )
+    path = C.write_results(
+        "broad",
+        {
+            "settings": vars(args),
+            "n_samples": n_samples,
+            "trials": names,
+            "results": results,
+            "anchors": broad.ANCHORS,
+            "data": broad.ATTRIBUTION,
+            "load_avg_at_end": os.getloadavg(),
+        },
+        out_dir=args.out,
+        meta=meta,
+    )
     print(f"results written to {path}")
     return 0
 

@@ -21,6 +21,7 @@ documents where the paper is open, so that both must agree to rounding error:
 Everything is float64 numpy; nothing imports jax. Vectors are (3,), the attitude estimate z2^ is a 9-vector
 of the rows of R^ (paper's z2), rotation matrices map body to inertial.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,8 +29,21 @@ from typing import Any, Callable, Dict, NamedTuple, Optional
 
 import numpy as np
 
-__all__ = ["NpParams", "NpState", "coefficients", "c2_matrix", "skew", "so3_exp", "project_so3",
-           "make_reference", "run_numpy", "cross", "batista_rates", "simulate_numpy", "simulate_and_observe"]
+__all__ = [
+    "NpParams",
+    "NpState",
+    "coefficients",
+    "c2_matrix",
+    "skew",
+    "so3_exp",
+    "project_so3",
+    "make_reference",
+    "run_numpy",
+    "cross",
+    "batista_rates",
+    "simulate_numpy",
+    "simulate_and_observe",
+]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -86,9 +100,18 @@ class NpParams(NamedTuple):
     def from_any(cls, p: Any) -> "NpParams":
         """From any object with the same field names (e.g. jaxatt's Params of jax arrays)."""
         get = lambda name: np.array(getattr(p, name), dtype=np.float64)  # noqa: E731
-        return cls(get("ref_nav"), get("earth_rate_nav"), np.atleast_1d(get("switch_times")), get("alpha1"),
-                   get("alpha2"), get("gain_z"), float(get("epsilon")), get("x1_0"), get("x2_0"),
-                   get("r_hat_0").reshape(3, 3))
+        return cls(
+            get("ref_nav"),
+            get("earth_rate_nav"),
+            np.atleast_1d(get("switch_times")),
+            get("alpha1"),
+            get("alpha2"),
+            get("gain_z"),
+            float(get("epsilon")),
+            get("x1_0"),
+            get("x2_0"),
+            get("r_hat_0").reshape(3, 3),
+        )
 
 
 def coefficients(ref_nav, earth_rate_nav) -> Dict[str, float]:
@@ -177,8 +200,14 @@ def make_reference(params: Any, x1_init: str = "first_sample") -> Reference:
             x1 = mag0.copy()
         else:
             x1 = p.x1_0.copy()
-        return NpState(float(t0), x1, p.x2_0.copy(), p.r_hat_0.reshape(9).copy(), project_so3(p.r_hat_0),
-                       np.where(np.isfinite(gyr0), gyr0, 0.0))
+        return NpState(
+            float(t0),
+            x1,
+            p.x2_0.copy(),
+            p.r_hat_0.reshape(9).copy(),
+            project_so3(p.r_hat_0),
+            np.where(np.isfinite(gyr0), gyr0, 0.0),
+        )
 
     def step(s: NpState, t_k, gyr, mag, dt):
         gyr = np.asarray(gyr, float)
@@ -262,13 +291,30 @@ def _sample(sn: _Sensors, r, t, noise6):
 
 
 def _sensors(rate, ref_nav, earth_rate_nav, gyro_arw, mag_noise, dt, gyro_bias):
-    return _Sensors(rate, np.asarray(ref_nav, float), np.asarray(earth_rate_nav, float),
-                    float(gyro_arw) / math.sqrt(dt), float(mag_noise),
-                    np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, float))
+    return _Sensors(
+        rate,
+        np.asarray(ref_nav, float),
+        np.asarray(earth_rate_nav, float),
+        float(gyro_arw) / math.sqrt(dt),
+        float(mag_noise),
+        np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, float),
+    )
 
 
-def simulate_numpy(n_steps: int, dt: float, *, rate, ref_nav, earth_rate_nav, gyro_arw: float, mag_noise: float,
-                   r0=None, gyro_bias=None, noise: Optional[np.ndarray] = None, rng=None):
+def simulate_numpy(
+    n_steps: int,
+    dt: float,
+    *,
+    rate,
+    ref_nav,
+    earth_rate_nav,
+    gyro_arw: float,
+    mag_noise: float,
+    r0=None,
+    gyro_bias=None,
+    noise: Optional[np.ndarray] = None,
+    rng=None,
+):
     """Truth and samples at t_k = k dt, k = 0 ... n_steps.
 
     gyro = omega + R^T I_wE + bias + (gyro_arw / sqrt(dt)) n_g; vector = R^T I_m + mag_noise n_m. ``noise`` is
@@ -290,9 +336,22 @@ def simulate_numpy(n_steps: int, dt: float, *, rate, ref_nav, earth_rate_nav, gy
     return t, gyr, mag, rs
 
 
-def simulate_and_observe(n_steps: int, dt: float, params: Any, *, rate, ref_nav, earth_rate_nav, gyro_arw: float,
-                         mag_noise: float, r0=None, gyro_bias=None, rng=None, x1_init: str = "first_sample",
-                         record: bool = False):
+def simulate_and_observe(
+    n_steps: int,
+    dt: float,
+    params: Any,
+    *,
+    rate,
+    ref_nav,
+    earth_rate_nav,
+    gyro_arw: float,
+    mag_noise: float,
+    r0=None,
+    gyro_bias=None,
+    rng=None,
+    x1_init: str = "first_sample",
+    record: bool = False,
+):
     """Truth, sensors and observer fused in one loop (the numpy counterpart of jaxatt's fused Monte Carlo).
 
     Noise is drawn per step from ``rng``. Returns the final observer state, the final true attitude and, with

@@ -7,6 +7,7 @@ also reporting |m^| / |I_m| - 1 (eq. 9 preserves |m^|). Usage::
 
     python benchmarks/orthogonality.py [--steps 1000000]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,17 +50,21 @@ def measure(steps: int, integrator: str, dtype, samples):
     cfg = E.Config(integrator=integrator)
     p = E.params(cfg, dtype=dtype)
     s = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype)[None], samples)  # one run, all in ``dtype``
-    fn = engine.compiled(E.observer(cfg), engine.Recorded(steps, False), ORTHOGONALITY, hold=cfg.hold,
-                         obs_dtype=dtype)
+    fn = engine.compiled(E.observer(cfg), engine.Recorded(steps, False), ORTHOGONALITY, hold=cfg.hold, obs_dtype=dtype)
     item = {"samples": s, "dt": jnp.asarray(cfg.dt, dtype)[None], "truth": None}
     t0 = time.perf_counter()
     res = jax.block_until_ready(fn(None, p, item).summary)
     wall = time.perf_counter() - t0
     mref = float(np.linalg.norm(np.asarray(cfg.reference_nT)))
-    return {"integrator": integrator, "dtype": np.dtype(dtype).name, "steps": steps,
-            "orthogonality_error_final": float(res["final"][0]), "orthogonality_error_max": float(res["max"][0]),
-            "m_norm_rel_error_final": float(abs(float(res["m_norm_final"][0]) / mref - 1.0)),
-            "wall_s_incl_compile": wall}
+    return {
+        "integrator": integrator,
+        "dtype": np.dtype(dtype).name,
+        "steps": steps,
+        "orthogonality_error_final": float(res["final"][0]),
+        "orthogonality_error_max": float(res["max"][0]),
+        "m_norm_rel_error_final": float(abs(float(res["m_norm_final"][0]) / mref - 1.0)),
+        "wall_s_incl_compile": wall,
+    }
 
 
 def main():
@@ -75,9 +80,19 @@ def main():
         for dtype in (jnp.float64, jnp.float32):
             print(f"{integrator} {np.dtype(dtype).name} ...", flush=True)
             rows.append(measure(args.steps, integrator, dtype, samples))
-    print_table(rows, ["integrator", "dtype", "steps", "orthogonality_error_final", "orthogonality_error_max",
-                       "m_norm_rel_error_final", "wall_s_incl_compile"],
-                title=f"batista-so3: ||R^T R - I||_F after {args.steps} steps (Section 4 slow, noisy)")
+    print_table(
+        rows,
+        [
+            "integrator",
+            "dtype",
+            "steps",
+            "orthogonality_error_final",
+            "orthogonality_error_max",
+            "m_norm_rel_error_final",
+            "wall_s_incl_compile",
+        ],
+        title=f"batista-so3: ||R^T R - I||_F after {args.steps} steps (Section 4 slow, noisy)",
+    )
     path = write_results("orthogonality", {"rows": rows}, out_dir=args.out)
     print(f"written {path}")
 

@@ -11,6 +11,7 @@ Usage:
 
 Writes benchmarks/results/sharding-<host>-<UTC>.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,10 +35,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     if not args.real_devices:
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                                   + f" --xla_force_host_platform_device_count={args.devices}").strip()
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}"
+        ).strip()
     import _common as C
-
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -52,9 +53,20 @@ def main(argv=None) -> int:
     n_steps = int(round(args.duration / cfg.dt))
     rows, results = [], {}
     for label, devices in (("one device", 1), (f"{len(jax.devices())} devices", None)):
-        def call():
-            return montecarlo.monte_carlo(scn, obs, p, runs=args.runs, chunk=args.runs, duration=args.duration,
-                                          dt=cfg.dt, errors_fn=E.errors, window_start=0.0, devices=devices)
+
+        def call(devices=devices):
+            return montecarlo.monte_carlo(
+                scn,
+                obs,
+                p,
+                runs=args.runs,
+                chunk=args.runs,
+                duration=args.duration,
+                dt=cfg.dt,
+                errors_fn=E.errors,
+                window_start=0.0,
+                devices=devices,
+            )
 
         t0 = time.perf_counter()
         res = call()
@@ -66,19 +78,39 @@ def main(argv=None) -> int:
             times.append(time.perf_counter() - t0)
         best = min(times)
         results[label] = res
-        rows.append({"label": label, "devices": len(jax.devices()) if devices is None else 1,
-                     "first_call_s": first, "best_s": best, "times_s": times,
-                     "run_steps_per_s": args.runs * n_steps / best})
-        print(f"{label:12s}: {args.runs * n_steps / best:.3g} run-steps/s (best of {args.repeats}: {best:.2f} s; "
-              f"first call with compile {first:.1f} s)", flush=True)
+        rows.append(
+            {
+                "label": label,
+                "devices": len(jax.devices()) if devices is None else 1,
+                "first_call_s": first,
+                "best_s": best,
+                "times_s": times,
+                "run_steps_per_s": args.runs * n_steps / best,
+            }
+        )
+        print(
+            f"{label:12s}: {args.runs * n_steps / best:.3g} run-steps/s (best of {args.repeats}: {best:.2f} s; "
+            f"first call with compile {first:.1f} s)",
+            flush=True,
+        )
     a, b = results.values()
     rel = max(float(np.max(np.abs(a.per_run[k] - b.per_run[k]) / (np.abs(a.per_run[k]) + 1e-300))) for k in a.per_run)
     speedup = rows[1]["run_steps_per_s"] / rows[0]["run_steps_per_s"]
     print(f"speed-up {speedup:.2f}x; largest relative difference of the per-run metrics {rel:.2g}")
-    path = C.write_results("sharding", {"settings": vars(args), "rows": rows, "speedup": speedup,
-                                        "max_rel_difference": rel, "jax_devices": [str(d) for d in jax.devices()],
-                                        "cpu_count": os.cpu_count(),
-                                        "load_avg_at_end": os.getloadavg()}, out_dir=args.out, meta=meta)
+    path = C.write_results(
+        "sharding",
+        {
+            "settings": vars(args),
+            "rows": rows,
+            "speedup": speedup,
+            "max_rel_difference": rel,
+            "jax_devices": [str(d) for d in jax.devices()],
+            "cpu_count": os.cpu_count(),
+            "load_avg_at_end": os.getloadavg(),
+        },
+        out_dir=args.out,
+        meta=meta,
+    )
     print(f"results written to {path}")
     return 0
 

@@ -20,6 +20,7 @@ Measured:
 
 Usage: python benchmarks/throughput.py [--quick] [--full] [--out DIR]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -68,9 +69,7 @@ def measure_fused(batch: int, n_steps: int, dtype: str, *, repeats: int, min_tim
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxatt import montecarlo
-
-    from jaxatt import engine
+    from jaxatt import engine, montecarlo
 
     exp = _experiment()
     cfg = exp.Config(duration=n_steps * exp.DT)
@@ -89,32 +88,44 @@ def measure_fused(batch: int, n_steps: int, dtype: str, *, repeats: int, min_tim
     t0 = time.perf_counter()
     summary = jax.block_until_ready(compiled(scn, params, keys)).summary
     first_s = time.perf_counter() - t0
-    tm = C.time_it(lambda: compiled(scn, params, keys), repeats=repeats, min_time=min_time,
-                   sync=jax.block_until_ready)
+    tm = C.time_it(lambda: compiled(scn, params, keys), repeats=repeats, min_time=min_time, sync=jax.block_until_ready)
     final_angle = np.asarray(summary["final_angle_error_deg"], float)
     return {
-        "kind": "fused", "dtype": dtype, "obs_dtype": str(obs_dtype), "sim_dtype": str(sim_dtype),
-        "batch": batch, "steps": n_steps, "compile_s": compile_s, "first_call_s": first_s,
-        "wall_s": tm["best_s"], "wall_median_s": tm["median_s"], "calls": len(tm["times_s"]),
+        "kind": "fused",
+        "dtype": dtype,
+        "obs_dtype": str(obs_dtype),
+        "sim_dtype": str(sim_dtype),
+        "batch": batch,
+        "steps": n_steps,
+        "compile_s": compile_s,
+        "first_call_s": first_s,
+        "wall_s": tm["best_s"],
+        "wall_median_s": tm["median_s"],
+        "calls": len(tm["times_s"]),
         "run_steps_per_s": batch * n_steps / tm["best_s"],
         "us_per_run_step": 1e6 * tm["best_s"] / (batch * n_steps),
-        "finite": bool(np.all(np.isfinite(final_angle))), "loadavg_1m": _load(),
+        "finite": bool(np.all(np.isfinite(final_angle))),
+        "loadavg_1m": _load(),
     }
 
 
 def _log(n_steps: int, seed: int = 0):
     """Noisy Section-IV log from the numpy simulator (t, gyr, mag)."""
     import numpy as np
-
     import numpy_reference as npref
 
     exp = _experiment()
     cfg = exp.Config()
     t, gyr, mag, _ = npref.simulate_numpy(
-        n_steps, cfg.dt, rate=npref.batista_rates(), ref_nav=np.asarray(cfg.reference_nT, float),
+        n_steps,
+        cfg.dt,
+        rate=npref.batista_rates(),
+        ref_nav=np.asarray(cfg.reference_nT, float),
         earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)),
-        gyro_arw=exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz), mag_noise=cfg.mag_noise_nT,
-        rng=np.random.default_rng(seed))
+        gyro_arw=exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz),
+        mag_noise=cfg.mag_noise_nT,
+        rng=np.random.default_rng(seed),
+    )
     return t, gyr, mag
 
 
@@ -138,10 +149,19 @@ def measure_observer_only(n_steps: int, dtype: str, *, repeats: int, min_time: f
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(p, samples, dts))
     tm = C.time_it(lambda: compiled(p, samples, dts), repeats=repeats, min_time=min_time, sync=jax.block_until_ready)
-    return {"kind": "observer_only", "dtype": dtype, "batch": 1, "steps": n_steps, "compile_s": compile_s,
-            "wall_s": tm["best_s"], "wall_median_s": tm["median_s"], "calls": len(tm["times_s"]),
-            "run_steps_per_s": n_steps / tm["best_s"], "us_per_run_step": 1e6 * tm["best_s"] / n_steps,
-            "loadavg_1m": _load()}
+    return {
+        "kind": "observer_only",
+        "dtype": dtype,
+        "batch": 1,
+        "steps": n_steps,
+        "compile_s": compile_s,
+        "wall_s": tm["best_s"],
+        "wall_median_s": tm["median_s"],
+        "calls": len(tm["times_s"]),
+        "run_steps_per_s": n_steps / tm["best_s"],
+        "us_per_run_step": 1e6 * tm["best_s"] / n_steps,
+        "loadavg_1m": _load(),
+    }
 
 
 def measure_api_recompile(runs: int = 10, duration: float = 20.0):
@@ -156,11 +176,27 @@ def measure_api_recompile(runs: int = 10, duration: float = 20.0):
     scn, obs, p = exp.scenario(cfg), exp.observer(cfg), exp.params(cfg)
     walls = []
     for _ in range(2):
-        r = montecarlo.monte_carlo(scn, obs, p, runs=runs, duration=duration, dt=cfg.dt, errors_fn=exp.errors,
-                                   window_start=0.0, dtype=jnp.float64, validate=ges.check_params)
+        r = montecarlo.monte_carlo(
+            scn,
+            obs,
+            p,
+            runs=runs,
+            duration=duration,
+            dt=cfg.dt,
+            errors_fn=exp.errors,
+            window_start=0.0,
+            dtype=jnp.float64,
+            validate=ges.check_params,
+        )
         walls.append(r.wall_s)
-    return {"kind": "api_monte_carlo", "dtype": "float64", "batch": runs, "steps": int(round(duration / cfg.dt)),
-            "first_call_s": walls[0], "second_call_s": walls[1]}
+    return {
+        "kind": "api_monte_carlo",
+        "dtype": "float64",
+        "batch": runs,
+        "steps": int(round(duration / cfg.dt)),
+        "first_call_s": walls[0],
+        "second_call_s": walls[1],
+    }
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -168,15 +204,18 @@ def measure_api_recompile(runs: int = 10, duration: float = 20.0):
 # ----------------------------------------------------------------------------------------------------------
 def measure_numpy(n_steps: int):
     import numpy as np
-
     import numpy_reference as npref
 
     exp = _experiment()
     cfg = exp.Config()
     p = npref.NpParams.from_any(exp.params(cfg))
-    kw = dict(rate=npref.batista_rates(), ref_nav=np.asarray(cfg.reference_nT, float),
-              earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)),
-              gyro_arw=exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz), mag_noise=cfg.mag_noise_nT)
+    kw = dict(
+        rate=npref.batista_rates(),
+        ref_nav=np.asarray(cfg.reference_nT, float),
+        earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)),
+        gyro_arw=exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz),
+        mag_noise=cfg.mag_noise_nT,
+    )
     npref.simulate_and_observe(50, cfg.dt, p, rng=np.random.default_rng(1), **kw)  # warm caches
     t0 = time.perf_counter()
     npref.simulate_and_observe(n_steps, cfg.dt, p, rng=np.random.default_rng(0), **kw)
@@ -192,10 +231,26 @@ def measure_numpy(n_steps: int):
     npref.run_numpy(log, p, dt=cfg.dt)
     obs_s = time.perf_counter() - t0
     return [
-        {"kind": "numpy_fused", "dtype": "float64", "batch": 1, "steps": n_steps, "wall_s": fused_s,
-         "run_steps_per_s": n_steps / fused_s, "us_per_run_step": 1e6 * fused_s / n_steps, "loadavg_1m": _load()},
-        {"kind": "numpy_observer_only", "dtype": "float64", "batch": 1, "steps": n_steps, "wall_s": obs_s,
-         "run_steps_per_s": n_steps / obs_s, "us_per_run_step": 1e6 * obs_s / n_steps, "loadavg_1m": _load()},
+        {
+            "kind": "numpy_fused",
+            "dtype": "float64",
+            "batch": 1,
+            "steps": n_steps,
+            "wall_s": fused_s,
+            "run_steps_per_s": n_steps / fused_s,
+            "us_per_run_step": 1e6 * fused_s / n_steps,
+            "loadavg_1m": _load(),
+        },
+        {
+            "kind": "numpy_observer_only",
+            "dtype": "float64",
+            "batch": 1,
+            "steps": n_steps,
+            "wall_s": obs_s,
+            "run_steps_per_s": n_steps / obs_s,
+            "us_per_run_step": 1e6 * obs_s / n_steps,
+            "loadavg_1m": _load(),
+        },
     ]
 
 
@@ -217,25 +272,51 @@ def full_monte_carlo(runs: int, duration: float, chunk: int, dtype: str):
 
     def on_chunk(res):
         now = time.perf_counter()
-        chunks.append({"runs_done": int(len(res.run_indices)), "chunk_s": now - t_last[0],
-                       "peak_rss_mib": C.peak_rss_mib()})
+        chunks.append(
+            {"runs_done": int(len(res.run_indices)), "chunk_s": now - t_last[0], "peak_rss_mib": C.peak_rss_mib()}
+        )
         t_last[0] = now
-        print(f"  {len(res.run_indices)}/{runs} runs, {res.wall_s:.1f} s, peak RSS {C.peak_rss_mib():.0f} MiB",
-              file=sys.stderr, flush=True)
+        print(
+            f"  {len(res.run_indices)}/{runs} runs, {res.wall_s:.1f} s, peak RSS {C.peak_rss_mib():.0f} MiB",
+            file=sys.stderr,
+            flush=True,
+        )
 
     t0 = time.perf_counter()
     res = montecarlo.monte_carlo(
-        exp.scenario(cfg), exp.observer(cfg), exp.params(cfg), runs=runs, duration=duration, dt=cfg.dt,
-        errors_fn=exp.errors, window_start=cfg.window_start, hold=cfg.hold, chunk=chunk,
-        dtype=jnp.float32 if dtype == "float32" else jnp.float64, validate=ges.check_params, on_chunk=on_chunk)
+        exp.scenario(cfg),
+        exp.observer(cfg),
+        exp.params(cfg),
+        runs=runs,
+        duration=duration,
+        dt=cfg.dt,
+        errors_fn=exp.errors,
+        window_start=cfg.window_start,
+        hold=cfg.hold,
+        chunk=chunk,
+        dtype=jnp.float32 if dtype == "float32" else jnp.float64,
+        validate=ges.check_params,
+        on_chunk=on_chunk,
+    )
     wall = time.perf_counter() - t0
     n_steps = int(round(duration / cfg.dt))
     mean_err = np.asarray(res.per_run["mean_angle_error_deg"], float)
     return {
-        "kind": "full_monte_carlo", "dtype": dtype, "runs": runs, "duration_s": duration, "steps": n_steps,
-        "chunk": chunk, "wall_s": wall, "run_steps_per_s_incl_compile": runs * n_steps / wall,
-        "steady_run_steps_per_s": (chunk * n_steps / min(c["chunk_s"] for c in chunks[1:])) if len(chunks) > 1 else None,
-        "peak_rss_mib": C.peak_rss_mib(), "rss_before_mib": rss0, "chunks": chunks, "complete": res.complete,
+        "kind": "full_monte_carlo",
+        "dtype": dtype,
+        "runs": runs,
+        "duration_s": duration,
+        "steps": n_steps,
+        "chunk": chunk,
+        "wall_s": wall,
+        "run_steps_per_s_incl_compile": runs * n_steps / wall,
+        "steady_run_steps_per_s": (chunk * n_steps / min(c["chunk_s"] for c in chunks[1:]))
+        if len(chunks) > 1
+        else None,
+        "peak_rss_mib": C.peak_rss_mib(),
+        "rss_before_mib": rss0,
+        "chunks": chunks,
+        "complete": res.complete,
         "mean_angle_error_deg_over_runs": float(np.mean(mean_err)),
         "paper_mean_angle_error_deg": exp.PAPER["slow"]["mean_angle_error_deg"],
     }
@@ -250,13 +331,17 @@ def _worker(args) -> None:
 
     if args._worker == "x64off":
         jax.config.update("jax_enable_x64", False)
-        rows = [measure_fused(b, steps_for(b, args.quick), "float32-x64off", repeats=args.repeats,
-                              min_time=args.min_time) for b in args.batches]
+        rows = [
+            measure_fused(b, steps_for(b, args.quick), "float32-x64off", repeats=args.repeats, min_time=args.min_time)
+            for b in args.batches
+        ]
         out = {"rows": rows, "jax": C.jax_info()}
     elif args._worker == "full":
         jax.config.update("jax_enable_x64", True)
-        out = {"row": full_monte_carlo(args.full_runs, args.full_duration, args.full_chunk, args.full_dtype),
-               "jax": C.jax_info()}
+        out = {
+            "row": full_monte_carlo(args.full_runs, args.full_duration, args.full_chunk, args.full_dtype),
+            "jax": C.jax_info(),
+        }
     else:
         raise SystemExit(f"unknown worker {args._worker}")
     print(MARK + json.dumps(out), flush=True)
@@ -267,18 +352,26 @@ def _subprocess(argv, timeout=None):
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout)
     for line in proc.stdout.splitlines():
         if line.startswith(MARK):
-            return json.loads(line[len(MARK):])
+            return json.loads(line[len(MARK) :])
     raise RuntimeError(f"subprocess {argv} failed (rc {proc.returncode}): {proc.stdout[-2000:]}")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer steps and repeats (a smoke run, ~1-2 min)")
-    ap.add_argument("--full", action="store_true", help="also a 1000-run x 3600 s Monte Carlo (minutes): wall and peak RSS")
-    ap.add_argument("--out", default=str(C.RESULTS_DIR), help="directory of the JSON result (default benchmarks/results)")
+    ap.add_argument(
+        "--full", action="store_true", help="also a 1000-run x 3600 s Monte Carlo (minutes): wall and peak RSS"
+    )
+    ap.add_argument(
+        "--out", default=str(C.RESULTS_DIR), help="directory of the JSON result (default benchmarks/results)"
+    )
     ap.add_argument("--batches", type=int, nargs="+", default=list(DEFAULT_BATCHES))
-    ap.add_argument("--dtypes", nargs="+", default=["float64", "float32", "float32-x64off"],
-                    choices=["float64", "float32", "float32-x64off"])
+    ap.add_argument(
+        "--dtypes",
+        nargs="+",
+        default=["float64", "float32", "float32-x64off"],
+        choices=["float64", "float32", "float32-x64off"],
+    )
     ap.add_argument("--numpy-steps", type=int, default=None, help="steps of the numpy loop (default 2000, quick 500)")
     ap.add_argument("--full-runs", type=int, default=1000)
     ap.add_argument("--full-duration", type=float, default=3600.0)
@@ -332,27 +425,74 @@ def main(argv=None) -> int:
 
     full = None
     if args.full:
-        print(f"full Monte Carlo: {args.full_runs} runs x {args.full_duration:g} s, {args.full_dtype} "
-              "(subprocess) ...", flush=True)
-        full = _subprocess(["--_worker", "full", "--full-runs", str(args.full_runs), "--full-duration",
-                            str(args.full_duration), "--full-chunk", str(args.full_chunk), "--full-dtype",
-                            args.full_dtype])["row"]
+        print(
+            f"full Monte Carlo: {args.full_runs} runs x {args.full_duration:g} s, {args.full_dtype} (subprocess) ...",
+            flush=True,
+        )
+        full = _subprocess(
+            [
+                "--_worker",
+                "full",
+                "--full-runs",
+                str(args.full_runs),
+                "--full-duration",
+                str(args.full_duration),
+                "--full-chunk",
+                str(args.full_chunk),
+                "--full-dtype",
+                args.full_dtype,
+            ]
+        )["row"]
 
-    cols = ["kind", "dtype", "batch", "steps", "compile_s", "wall_s", "run_steps_per_s", "us_per_run_step",
-            "speedup_vs_numpy", "loadavg_1m"]
+    cols = [
+        "kind",
+        "dtype",
+        "batch",
+        "steps",
+        "compile_s",
+        "wall_s",
+        "run_steps_per_s",
+        "us_per_run_step",
+        "speedup_vs_numpy",
+        "loadavg_1m",
+    ]
     C.print_table(rows, cols, title="Run-steps per second (truth + sensors + observer unless 'observer_only')")
-    C.print_table([api], ["kind", "dtype", "batch", "steps", "first_call_s", "second_call_s"],
-                  title="monte_carlo called twice with the same objects (wall incl. compile)")
+    C.print_table(
+        [api],
+        ["kind", "dtype", "batch", "steps", "first_call_s", "second_call_s"],
+        title="monte_carlo called twice with the same objects (wall incl. compile)",
+    )
     if full is not None:
-        C.print_table([full], ["kind", "dtype", "runs", "steps", "chunk", "wall_s", "run_steps_per_s_incl_compile",
-                               "steady_run_steps_per_s", "peak_rss_mib", "mean_angle_error_deg_over_runs"],
-                      title="Full Monte Carlo")
+        C.print_table(
+            [full],
+            [
+                "kind",
+                "dtype",
+                "runs",
+                "steps",
+                "chunk",
+                "wall_s",
+                "run_steps_per_s_incl_compile",
+                "steady_run_steps_per_s",
+                "peak_rss_mib",
+                "mean_angle_error_deg_over_runs",
+            ],
+            title="Full Monte Carlo",
+        )
 
     meta["machine"]["loadavg_1_5_15_end"] = C.machine_info()["loadavg_1_5_15"]
     data = {
-        "settings": {"quick": args.quick, "batches": args.batches, "dtypes": args.dtypes, "repeats": args.repeats,
-                     "min_time_s": args.min_time, "dt_s": 0.01, "experiment": "batista-ges (slow trajectory)",
-                     "timing": "best of `calls` warm calls of an AOT-compiled function; run_steps_per_s = batch * steps / wall_s"},
+        "settings": {
+            "quick": args.quick,
+            "batches": args.batches,
+            "dtypes": args.dtypes,
+            "repeats": args.repeats,
+            "min_time_s": args.min_time,
+            "dt_s": 0.01,
+            "experiment": "batista-ges (slow trajectory)",
+            "timing": "best of `calls` warm calls of an AOT-compiled function; "
+            "run_steps_per_s = batch * steps / wall_s",
+        },
         "rows": rows,
         "api_monte_carlo": api,
         "full_monte_carlo": full,

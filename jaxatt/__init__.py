@@ -9,6 +9,7 @@ Conventions: quaternions (w, x, y, z); R maps sensor/body to the navigation fram
 frames named at every public function (the Batista papers simulate in NED, BROAD uses ENU; :mod:`jaxatt.frames`).
 jaxatt never switches JAX's float64 mode: enable it with ``jax.config.update("jax_enable_x64", True)``.
 """
+
 __version__ = "0.2.0"
 
 from . import data, engine, frames, integrate, metrics, montecarlo, observers, sim, so3  # noqa: E402
@@ -16,6 +17,26 @@ from .api import BroadScore, Estimate, broad_score, filter, monte_carlo  # noqa:
 from .fitting.fitter import FitResult, fit  # noqa: E402
 from .types import ImuSample, Interval, Observer, VectorSample  # noqa: E402
 
-__all__ = ["filter", "broad_score", "fit", "monte_carlo", "Estimate", "BroadScore", "FitResult", "ImuSample",
-           "VectorSample", "Interval", "Observer", "data", "engine", "frames", "integrate", "metrics", "montecarlo",
-           "observers", "sim", "so3", "__version__"]
+__all__ = [
+    "filter",
+    "broad_score",
+    "fit",
+    "monte_carlo",
+    "Estimate",
+    "BroadScore",
+    "FitResult",
+    "ImuSample",
+    "VectorSample",
+    "Interval",
+    "Observer",
+    "data",
+    "engine",
+    "frames",
+    "integrate",
+    "metrics",
+    "montecarlo",
+    "observers",
+    "sim",
+    "so3",
+    "__version__",
+]

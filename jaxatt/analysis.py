@@ -25,6 +25,7 @@ tell a jump from a fast change, so jumps of a switching b̊ count, unlike the a.
 Omega is the gyro sample (minus ``gyro_bias`` if given). Directions are normalised; a sample with a
 non-finite or zero vector contributes nothing (a missing reading).
 """
+
 from __future__ import annotations
 
 import math
@@ -32,8 +33,14 @@ from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["Excitation", "excitation", "sufficient_excitation", "excitation_from_samples",
-           "excitation_of_scenario", "plot_excitation"]
+__all__ = [
+    "Excitation",
+    "excitation",
+    "sufficient_excitation",
+    "excitation_from_samples",
+    "excitation_of_scenario",
+    "plot_excitation",
+]
 
 
 class Excitation(NamedTuple):
@@ -151,8 +158,18 @@ def _check_rule(rule):
 # ------------------------------------------------------------------------------------------------------
 # Public API
 # ------------------------------------------------------------------------------------------------------
-def excitation(t, *, window: float, ref_inertial=None, inertial_meas=None, ref_body=None, gyr=None, gains=None,
-               stride: int = 1, rule: str = "trapezoid") -> Excitation:
+def excitation(
+    t,
+    *,
+    window: float,
+    ref_inertial=None,
+    inertial_meas=None,
+    ref_body=None,
+    gyr=None,
+    gains=None,
+    stride: int = 1,
+    rule: str = "trapezoid",
+) -> Excitation:
     """Persistent-excitation measures (Definition 4.1, Lemma 4.2, condition (13)) over sliding windows.
 
     Args:
@@ -184,8 +201,9 @@ def excitation(t, *, window: float, ref_inertial=None, inertial_meas=None, ref_b
     return _measures(t, starts[keep], ends[keep], *C)
 
 
-def sufficient_excitation(t, *, ref_inertial=None, inertial_meas=None, ref_body=None, gyr=None, gains=None,
-                          rule: str = "trapezoid") -> Excitation:
+def sufficient_excitation(
+    t, *, ref_inertial=None, inertial_meas=None, ref_body=None, gyr=None, gains=None, rule: str = "trapezoid"
+) -> Excitation:
     """Sufficient-excitation measures (Definition 3.3 eq. (4), Lemma 3.4 eq. (5), condition (6)) over the
     growing windows [t_0, t_k], k = 1..T-1; same arguments as :func:`excitation`."""
     t = _time(t)
@@ -195,9 +213,17 @@ def sufficient_excitation(t, *, ref_inertial=None, inertial_meas=None, ref_body=
     return _measures(t, np.zeros_like(ends), ends, *C)
 
 
-def excitation_from_samples(samples, *, window: Optional[float] = None, params=None,
-                            imu_fields: Sequence[str] = ("acc", "mag"), gains=None, gyro_bias=None, stride: int = 1,
-                            rule: str = "trapezoid") -> Excitation:
+def excitation_from_samples(
+    samples,
+    *,
+    window: Optional[float] = None,
+    params=None,
+    imu_fields: Sequence[str] = ("acc", "mag"),
+    gains=None,
+    gyro_bias=None,
+    stride: int = 1,
+    rule: str = "trapezoid",
+) -> Excitation:
     """Excitation of a log: a stacked :class:`jaxatt.types.VectorSample` or
     :class:`jaxatt.types.ImuSample` (constant references ``params.ref_inertial`` in the order of
     ``imu_fields``). References a VectorSample does not carry come from ``params``. ``window=None`` gives
@@ -221,6 +247,7 @@ def excitation_from_samples(samples, *, window: Optional[float] = None, params=N
             raise ValueError(f"params.ref_inertial has {refs.shape[0]} rows but imu_fields is {tuple(imu_fields)}")
         kw = dict(ref_inertial=refs)
     elif isinstance(samples, VectorSample):
+
         def ref(meas, carried, name):
             if carried is not None:
                 return carried
@@ -231,8 +258,12 @@ def excitation_from_samples(samples, *, window: Optional[float] = None, params=N
             return np.asarray(getattr(params, name), float)
 
         b = samples.inertial_meas
-        kw = dict(ref_inertial=ref(samples.body_meas, samples.ref_inertial, "ref_inertial"), inertial_meas=b,
-                  ref_body=ref(b, samples.ref_body, "ref_body"), gyr=gyr)
+        kw = dict(
+            ref_inertial=ref(samples.body_meas, samples.ref_inertial, "ref_inertial"),
+            inertial_meas=b,
+            ref_body=ref(b, samples.ref_body, "ref_body"),
+            gyr=gyr,
+        )
     else:
         raise ValueError(f"samples must be a VectorSample or ImuSample, got {type(samples).__name__}")
     if window is None:
@@ -240,20 +271,25 @@ def excitation_from_samples(samples, *, window: Optional[float] = None, params=N
     return excitation(samples.t, window=window, gains=gains, stride=stride, rule=rule, **kw)
 
 
-def excitation_of_scenario(scenario, *, duration: float, dt: float, window: float, gains=None, stride: int = 1,
-                           rule: str = "trapezoid") -> Excitation:
+def excitation_of_scenario(
+    scenario, *, duration: float, dt: float, window: float, gains=None, stride: int = 1, rule: str = "trapezoid"
+) -> Excitation:
     """Excitation of a :class:`jaxatt.sim.references.VectorScenario` from its noise-free simulated log
     (Omega exact, no bias)."""
     from .sim import references
 
-    clean = scenario._replace(gyro_bias=scenario.gyro_bias * 0, gyro_noise_std=scenario.gyro_noise_std * 0,
-                              meas_noise_std=scenario.meas_noise_std * 0)
+    clean = scenario._replace(
+        gyro_bias=scenario.gyro_bias * 0,
+        gyro_noise_std=scenario.gyro_noise_std * 0,
+        meas_noise_std=scenario.meas_noise_std * 0,
+    )
     samples, _ = references.simulate_vectors(clean, duration, dt)
     return excitation_from_samples(samples, window=window, gains=gains, stride=stride, rule=rule)
 
 
-def plot_excitation(result: Excitation, ax=None, *, per_second: bool = True, threshold: Optional[float] = None,
-                    title: str = ""):
+def plot_excitation(
+    result: Excitation, ax=None, *, per_second: bool = True, threshold: Optional[float] = None, title: str = ""
+):
     """Plot the excitation measures against the window start time; returns the matplotlib Axes.
 
     ``per_second`` divides by the window length (a rate: λ's in [0, n], compatible term in rad/s).

@@ -15,6 +15,7 @@ NWU, :mod:`jaxatt.frames`). T samples give T estimates, estimate 0 being the obs
 sample (:mod:`jaxatt.engine`). Arithmetic: float64 for float64 input when JAX's x64 is on (jaxatt never switches
 it: ``jax.config.update("jax_enable_x64", True)``); otherwise float32, with a warning for float64 input.
 """
+
 from __future__ import annotations
 
 import time
@@ -29,8 +30,19 @@ from . import engine, frames
 from .observers import registry
 from .types import ImuSample, Observer
 
-__all__ = ["filter", "Estimate", "broad_score", "BroadScore", "TrialScore", "GroupScore", "monte_carlo",
-           "ahrs_scenario", "ahrs_errors", "resolve_observer", "compute_dtype"]
+__all__ = [
+    "filter",
+    "Estimate",
+    "broad_score",
+    "BroadScore",
+    "TrialScore",
+    "GroupScore",
+    "monte_carlo",
+    "ahrs_scenario",
+    "ahrs_errors",
+    "resolve_observer",
+    "compute_dtype",
+]
 
 ObserverLike = Union[str, Observer, registry.Entry]
 
@@ -51,9 +63,11 @@ def compute_dtype(*arrays, dtype=None, what: str = "input"):
         return dt
     wide = any(np.asarray(a).dtype == np.float64 for a in arrays if a is not None)
     if wide and not x64:
-        warnings.warn(f"float64 {what} is computed in float32 because JAX's x64 mode is off; call "
-                      "jax.config.update('jax_enable_x64', True) for float64 results, or pass float32 arrays",
-                      stacklevel=3)
+        warnings.warn(
+            f"float64 {what} is computed in float32 because JAX's x64 mode is off; call "
+            "jax.config.update('jax_enable_x64', True) for float64 results, or pass float32 arrays",
+            stacklevel=3,
+        )
     return np.dtype(np.float64) if (wide and x64) else np.dtype(np.float32)
 
 
@@ -118,14 +132,22 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
         return obs, params, entry, entry.name
     if isinstance(observer, Observer):
         if params is None:
-            raise ValueError(f"params are required for your own observer {observer.name!r} "
-                             "(registered observers have defaults)")
+            raise ValueError(
+                f"params are required for your own observer {observer.name!r} (registered observers have defaults)"
+            )
         return observer, params, None, observer.name
     if hasattr(observer, "init") and hasattr(observer, "step"):
-        return resolve_observer(Observer(observer.init, observer.step, getattr(observer, "name", "observer"),
-                                         getattr(observer, "output", None)), params, dtype=dtype)
-    raise ValueError(f"observer must be a registered name ({', '.join(registry.names())}) or an "
-                     f"Observer(init, step), got {type(observer).__name__}")
+        return resolve_observer(
+            Observer(
+                observer.init, observer.step, getattr(observer, "name", "observer"), getattr(observer, "output", None)
+            ),
+            params,
+            dtype=dtype,
+        )
+    raise ValueError(
+        f"observer must be a registered name ({', '.join(registry.names())}) or an "
+        f"Observer(init, step), got {type(observer).__name__}"
+    )
 
 
 def _check_concrete(check, params):
@@ -188,8 +210,19 @@ def _as_dict(out) -> Dict[str, Any]:
     return {"out": out}
 
 
-def filter(observer: ObserverLike, gyr, acc=None, mag=None, *, dt=None, t=None, params=None, frame: str = "ENU",
-           hold: Optional[str] = None, dtype=None) -> Estimate:
+def filter(
+    observer: ObserverLike,
+    gyr,
+    acc=None,
+    mag=None,
+    *,
+    dt=None,
+    t=None,
+    params=None,
+    frame: str = "ENU",
+    hold: Optional[str] = None,
+    dtype=None,
+) -> Estimate:
     """Run an observer over one recording; T estimates for T samples (numpy).
 
     Args:
@@ -230,18 +263,22 @@ def filter(observer: ObserverLike, gyr, acc=None, mag=None, *, dt=None, t=None, 
     cast = lambda a: None if a is None else jnp.asarray(a, dt_)  # noqa: E731
     samples = ImuSample(jnp.asarray(ts, dt_), cast(gyr_a), cast(acc_a), cast(mag_a))
     steps = np.diff(ts)
-    item = {"samples": jax.tree_util.tree_map(lambda a: a[None], samples),
-            "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
-            "truth": None}
-    fn = engine.compiled(obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold,
-                         obs_dtype=dt_)
+    item = {
+        "samples": jax.tree_util.tree_map(lambda a: a[None], samples),
+        "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
+        "truth": None,
+    }
+    fn = engine.compiled(
+        obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
+    )
     out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
     q = np.asarray(engine.estimate_q(out))
     bad = ~np.all(np.isfinite(q), axis=-1)
     if bad.any():
         k = int(np.argmax(bad))
-        raise FloatingPointError(f"{name}: the estimate is not finite from sample {k} (t = {ts[k]:.6g} s) on; check "
-                                 "the inputs and gains")
+        raise FloatingPointError(
+            f"{name}: the estimate is not finite from sample {k} (t = {ts[k]:.6g} s) on; check the inputs and gains"
+        )
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
@@ -279,9 +316,12 @@ class BroadScore(NamedTuple):
     wall_s: float
 
     def to_dict(self) -> dict:
-        return {"observer": self.observer, "wall_s": self.wall_s,
-                "trials": {n: s._asdict() for n, s in self.trials.items()},
-                "groups": {g: s._asdict() for g, s in self.groups.items()}}
+        return {
+            "observer": self.observer,
+            "wall_s": self.wall_s,
+            "trials": {n: s._asdict() for n, s in self.trials.items()},
+            "groups": {g: s._asdict() for g, s in self.groups.items()},
+        }
 
 
 def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
@@ -296,8 +336,9 @@ def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
     return out
 
 
-def broad_score(observer: ObserverLike, params, trials: Sequence, *, hold: Optional[str] = None,
-                dtype=None) -> BroadScore:
+def broad_score(
+    observer: ObserverLike, params, trials: Sequence, *, hold: Optional[str] = None, dtype=None
+) -> BroadScore:
     """The BROAD metric of an observer on trials (all at once: padded, vmapped, one scan).
 
     Args:
@@ -330,19 +371,29 @@ def broad_score(observer: ObserverLike, params, trials: Sequence, *, hold: Optio
     for tr in trials:
         m = res[tr.name]
         if not all(np.isfinite(v) for v in m.values()):
-            raise FloatingPointError(f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); the estimate "
-                                     "diverged (check the gains)")
-        per[tr.name] = TrialScore(m["total_rmse_deg"], m["heading_rmse_deg"], m["inclination_rmse_deg"],
-                                  tr.group or B.group_of(tr.name))
+            raise FloatingPointError(
+                f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); the estimate "
+                "diverged (check the gains)"
+            )
+        per[tr.name] = TrialScore(
+            m["total_rmse_deg"], m["heading_rmse_deg"], m["inclination_rmse_deg"], tr.group or B.group_of(tr.name)
+        )
     return BroadScore(per, group_means(per), name, wall)
 
 
 # ------------------------------------------------------------------------------------------------------------
 # Monte Carlo on a simulated AHRS scenario
 # ------------------------------------------------------------------------------------------------------------
-def ahrs_scenario(*, gyro_noise_std: float = 1e-3, acc_noise_std: float = 0.05, mag_noise_std: float = 0.3,
-                  gyro_bias=(0.01, -0.01, 0.005), mag_ref_enu=(0.0, 20.0, -40.0), rate_scale: float = 1.0,
-                  mix_prob: float = 0.0):
+def ahrs_scenario(
+    *,
+    gyro_noise_std: float = 1e-3,
+    acc_noise_std: float = 0.05,
+    mag_noise_std: float = 0.3,
+    gyro_bias=(0.01, -0.01, 0.005),
+    mag_ref_enu=(0.0, 20.0, -40.0),
+    rate_scale: float = 1.0,
+    mix_prob: float = 0.0,
+):
     """A simulated IMU in ENU for observers made for recorded data: gyro (rad/s, constant bias + white noise per
     sample), accelerometer measuring the specific force (+9.81 m/s^2 "up" at rest, white noise m/s^2),
     magnetometer (uT; default 44.7 uT field pointing north and down, white noise uT), the rotation rates of the
@@ -350,9 +401,16 @@ def ahrs_scenario(*, gyro_noise_std: float = 1e-3, acc_noise_std: float = 0.05, 
     field's horizontal direction, as in every recorded-data set-up (TRIAD)."""
     from .sim import ahrs
 
-    return ahrs.AhrsScenario.make(rates=ahrs.nlio_rates(rate_scale), acc_ref_nav=(0.0, 0.0, 9.81),
-                                  mag_ref_nav=mag_ref_enu, gyro_bias=gyro_bias, gyro_noise_std=gyro_noise_std,
-                                  acc_noise_std=acc_noise_std, mag_noise_std=mag_noise_std, mix_prob=mix_prob)
+    return ahrs.AhrsScenario.make(
+        rates=ahrs.nlio_rates(rate_scale),
+        acc_ref_nav=(0.0, 0.0, 9.81),
+        mag_ref_nav=mag_ref_enu,
+        gyro_bias=gyro_bias,
+        gyro_noise_std=gyro_noise_std,
+        acc_noise_std=acc_noise_std,
+        mag_noise_std=mag_noise_std,
+        mix_prob=mix_prob,
+    )
 
 
 def ahrs_errors(truth, out):
@@ -369,9 +427,22 @@ def ahrs_errors(truth, out):
     return e
 
 
-def monte_carlo(observer: ObserverLike, params=None, *, runs: int = 100, duration: float = 60.0, dt: float = 0.01,
-                seed: int = 0, scenario=None, window_start: Optional[float] = None, hold: Optional[str] = None,
-                dtype=None, chunk: int = 250, trace_every: int = 0, progress=None):
+def monte_carlo(
+    observer: ObserverLike,
+    params=None,
+    *,
+    runs: int = 100,
+    duration: float = 60.0,
+    dt: float = 0.01,
+    seed: int = 0,
+    scenario=None,
+    window_start: Optional[float] = None,
+    hold: Optional[str] = None,
+    dtype=None,
+    chunk: int = 250,
+    trace_every: int = 0,
+    progress=None,
+):
     """Monte Carlo of an observer (registered or your own) on a simulated AHRS (:func:`ahrs_scenario` by default,
     ENU): ``runs`` runs of ``duration`` s at 1/``dt`` Hz, run k from key fold_in(PRNGKey(seed), k), metrics reduced
     as the scan runs (:func:`jaxatt.montecarlo.monte_carlo`): per run the mean / max / final angle error (deg)
@@ -388,9 +459,22 @@ def monte_carlo(observer: ObserverLike, params=None, *, runs: int = 100, duratio
     ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
     if not 0.0 <= ws < duration:
         raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")
-    res = mc.monte_carlo(scn, obs, p, runs=runs, duration=duration, dt=dt, seed=seed, errors_fn=ahrs_errors,
-                         window_start=ws, hold=hold, chunk=chunk, trace_every=trace_every, dtype=dt_,
-                         progress=progress)
+    res = mc.monte_carlo(
+        scn,
+        obs,
+        p,
+        runs=runs,
+        duration=duration,
+        dt=dt,
+        seed=seed,
+        errors_fn=ahrs_errors,
+        window_start=ws,
+        hold=hold,
+        chunk=chunk,
+        trace_every=trace_every,
+        dtype=dt_,
+        progress=progress,
+    )
     for k, v in res.per_run.items():
         bad = ~np.isfinite(np.asarray(v, float))
         if bad.any():

@@ -6,6 +6,7 @@ Every command enables float64 in JAX (the library never does): simulated truth a
 run in float64 unless ``--float32``. Bad input is one line on stderr naming the flag or file and exit status 2
 (``--debug`` shows the traceback); a non-finite result exits 1; Ctrl-C exits 130 keeping what was finished.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -89,16 +90,32 @@ def _mc_flags(p: argparse.ArgumentParser, *, study_flags: bool = True):
     p.add_argument("--runs", type=_count(1), default=100, help="Monte Carlo runs (default 100)")
     p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default: the paper's)")
     p.add_argument("--seed", type=int, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
-    p.add_argument("--hold", choices=["zoh", "linear"], default=None,
-                   help="sensor samples held over the RK4 step (zoh) or interpolated to the stage times (linear); "
-                        "default: the study's")
+    p.add_argument(
+        "--hold",
+        choices=["zoh", "linear"],
+        default=None,
+        help="sensor samples held over the RK4 step (zoh) or interpolated to the stage times (linear); "
+        "default: the study's",
+    )
     if study_flags:
-        p.add_argument("--x1-init", choices=["first-sample", "zero"], default=None,
-                       help="batista-ges: x1^(0) = first magnetometer sample (default; reproduces the paper) or zero")
-        p.add_argument("--m-init", choices=["rescaled", "first-sample"], default=None,
-                       help="batista-so3: m^(0) = first sample rescaled to |I_m| (default; Theorem 1) or the raw sample")
-        p.add_argument("--integrator", choices=["lie", "rk4"], default=None,
-                       help="batista-so3: RKMK-4 on SO(3) (default) or plain RK4 on the 15 numbers (the paper's)")
+        p.add_argument(
+            "--x1-init",
+            choices=["first-sample", "zero"],
+            default=None,
+            help="batista-ges: x1^(0) = first magnetometer sample (default; reproduces the paper) or zero",
+        )
+        p.add_argument(
+            "--m-init",
+            choices=["rescaled", "first-sample"],
+            default=None,
+            help="batista-so3: m^(0) = first sample rescaled to |I_m| (default; Theorem 1) or the raw sample",
+        )
+        p.add_argument(
+            "--integrator",
+            choices=["lie", "rk4"],
+            default=None,
+            help="batista-so3: RKMK-4 on SO(3) (default) or plain RK4 on the 15 numbers (the paper's)",
+        )
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float32", action="store_true", help="run the observer in float32")
     prec.add_argument("--float64", action="store_true", help="run the observer in float64 (default)")
@@ -115,13 +132,20 @@ def _parser() -> argparse.ArgumentParser:
 
     fp = sub.add_parser("filter", help="run an observer on your own log (CSV / NPZ / BROAD HDF5) and write estimates")
     fp.add_argument("--log", required=True, help="CSV or NPZ log (jaxatt.data.logs) or a BROAD .hdf5 trial")
-    fp.add_argument("--observer", default="robust",
-                    help="a registered observer (robust, mahony, mekf, nlio, ...) or module:attr of your own "
-                         "Observer / registry Entry (default robust)")
+    fp.add_argument(
+        "--observer",
+        default="robust",
+        help="a registered observer (robust, mahony, mekf, nlio, ...) or module:attr of your own "
+        "Observer / registry Entry (default robust)",
+    )
     fp.add_argument("--params", default=None, help="module:attr of the params of your own observer")
     fp.add_argument("--gains", default=None, help="gains file (jaxatt tune / broad-tune / fit) to use")
-    fp.add_argument("--frame", choices=["ENU", "NED", "NWU"], default="ENU",
-                    help="navigation frame of the written quaternions (default ENU)")
+    fp.add_argument(
+        "--frame",
+        choices=["ENU", "NED", "NWU"],
+        default="ENU",
+        help="navigation frame of the written quaternions (default ENU)",
+    )
     fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
     fp.add_argument("--out", required=True, help="CSV of t, qw, qx, qy, qz and the observer's flags")
@@ -137,15 +161,23 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--trajectory", choices=["slow", "aggressive"], default=None)
     g.add_argument("--rate-scale", type=_nonneg, default=None, help="multiplies the angular-velocity profile")
     g.add_argument("--latitude", type=_latitude, default=None, help="latitude in degrees (north positive)")
-    g.add_argument("--reference", type=_floats(3), default=None,
-                   help="inertial vector measured by the vector sensor, X,Y,Z in nT, NED (default IGRF-11 Lisbon)")
+    g.add_argument(
+        "--reference",
+        type=_floats(3),
+        default=None,
+        help="inertial vector measured by the vector sensor, X,Y,Z in nT, NED (default IGRF-11 Lisbon)",
+    )
     g.add_argument("--gyro-arw", type=_nonneg, default=None, help="gyro angle random walk, deg/h/sqrt(Hz) (default 4)")
     g.add_argument("--mag-noise", type=_nonneg, default=None, help="vector-sensor noise std, nT (default 150)")
     g.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major)")
     g.add_argument("--x2-0", type=_floats(3), default=None, help="batista-ges: initial x2^, nT/s")
     g.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
-    g.add_argument("--epsilon", type=_positive, default=None,
-                   help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0, 1) (default 0.5)")
+    g.add_argument(
+        "--epsilon",
+        type=_positive,
+        default=None,
+        help="batista-ges: Theorem-3 threshold on ||R^T R - I||_F, in (0, 1) (default 0.5)",
+    )
     c = sp.add_argument_group("complementary (Trumpf et al. 2012) observer")
     c.add_argument("--scenario", choices=SCENARIOS, default=None, help="vector-measurement scenario (default rotating)")
     c.add_argument("--form", choices=["matrix", "quaternion"], default=None, help="eq. (10) or eq. (18)")
@@ -169,8 +201,14 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--lr", type=_positive, default=0.05)
-    tp.add_argument("--refine-schedule", type=_positive, nargs="+", default=(), metavar="T",
-                    help="extra switch times (s) for the study's gain schedules, tuned from the paper's values")
+    tp.add_argument(
+        "--refine-schedule",
+        type=_positive,
+        nargs="+",
+        default=(),
+        metavar="T",
+        help="extra switch times (s) for the study's gain schedules, tuned from the paper's values",
+    )
     tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
     tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -206,19 +244,30 @@ def _parser() -> argparse.ArgumentParser:
     bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     bt.add_argument("--quiet", action="store_true")
 
-    ep = sub.add_parser("excitation", help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
-                                           "Lemmas 3.4, 4.2, conditions 6, 13) of a scenario or a log")
+    ep = sub.add_parser(
+        "excitation",
+        help="excitation / observability measures (Trumpf et al. Defs 3.3, 4.1, "
+        "Lemmas 3.4, 4.2, conditions 6, 13) of a scenario or a log",
+    )
     src = ep.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=SCENARIOS)
     src.add_argument("--log", help="CSV or NPZ log (jaxatt.data.logs): acc and mag vs constant references")
     ep.add_argument("--duration", type=_positive, default=60.0, help="simulated duration of a scenario, s")
     ep.add_argument("--dt", type=_positive, default=0.01, help="sample period of a scenario, s")
     ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
-    ep.add_argument("--mag-ref", type=_floats(3), default=None,
-                    help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)")
+    ep.add_argument(
+        "--mag-ref",
+        type=_floats(3),
+        default=None,
+        help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)",
+    )
     ep.add_argument("--frame", choices=["NED", "ENU"], default="NED", help="log: navigation frame of --mag-ref")
-    ep.add_argument("--threshold", type=_nonneg, default=0.05,
-                    help="a window is reported as not exciting when lambda2 / T falls below this (default 0.05)")
+    ep.add_argument(
+        "--threshold",
+        type=_nonneg,
+        default=0.05,
+        help="a window is reported as not exciting when lambda2 / T falls below this (default 0.05)",
+    )
     ep.add_argument("--json", default=None, help="write the measures per window here")
     ep.add_argument("--plot", default=None, help="write a PNG of the measures over time here")
     return ap
@@ -238,13 +287,38 @@ def _given(args, mapping) -> dict:
     return {field: getattr(args, attr) for attr, field in mapping.items() if getattr(args, attr, None) is not None}
 
 
-_BATISTA_FLAGS = {"x1_init": "x1_init", "m_init": "m_init", "integrator": "integrator", "x2_0": "x2_0",
-                  "v0": "v_hat_0", "epsilon": "epsilon"}
-_FLAG = {"x1_init": "--x1-init", "m_init": "--m-init", "integrator": "--integrator", "x2_0": "--x2-0", "v0": "--v0",
-         "epsilon": "--epsilon", "trajectory": "--trajectory", "rate_scale": "--rate-scale", "latitude": "--latitude",
-         "reference": "--reference", "gyro_arw": "--gyro-arw", "mag_noise": "--mag-noise", "r0": "--r0",
-         "scenario": "--scenario", "form": "--form", "gain": "--gain", "k_i": "--k-i", "gyro_noise": "--gyro-noise",
-         "vector_noise": "--vector-noise", "aggressive": "--aggressive", "hold": "--hold", "plot": "--plot"}
+_BATISTA_FLAGS = {
+    "x1_init": "x1_init",
+    "m_init": "m_init",
+    "integrator": "integrator",
+    "x2_0": "x2_0",
+    "v0": "v_hat_0",
+    "epsilon": "epsilon",
+}
+_FLAG = {
+    "x1_init": "--x1-init",
+    "m_init": "--m-init",
+    "integrator": "--integrator",
+    "x2_0": "--x2-0",
+    "v0": "--v0",
+    "epsilon": "--epsilon",
+    "trajectory": "--trajectory",
+    "rate_scale": "--rate-scale",
+    "latitude": "--latitude",
+    "reference": "--reference",
+    "gyro_arw": "--gyro-arw",
+    "mag_noise": "--mag-noise",
+    "r0": "--r0",
+    "scenario": "--scenario",
+    "form": "--form",
+    "gain": "--gain",
+    "k_i": "--k-i",
+    "gyro_noise": "--gyro-noise",
+    "vector_noise": "--vector-noise",
+    "aggressive": "--aggressive",
+    "hold": "--hold",
+    "plot": "--plot",
+}
 
 
 def _refuse(args, attrs, name):
@@ -286,9 +360,21 @@ def _reproduce(args) -> int:
         raise UserError(f"--aggressive does not apply to {args.experiment}")
     cfg = _study_config(study, args, extra)
     title = f"{args.experiment} reproduce" + (f" ({cfg.trajectory})" if hasattr(cfg, "trajectory") else "")
-    return _finish_study(studies.reproduce(study, cfg, runs=args.runs, seed=args.seed, chunk=args.chunk,
-                                           dtype=_dtype(args), json_path=args.json, plot_path=args.plot,
-                                           quiet=args.quiet, progress=_progress(args), title=title))
+    return _finish_study(
+        studies.reproduce(
+            study,
+            cfg,
+            runs=args.runs,
+            seed=args.seed,
+            chunk=args.chunk,
+            dtype=_dtype(args),
+            json_path=args.json,
+            plot_path=args.plot,
+            quiet=args.quiet,
+            progress=_progress(args),
+            title=title,
+        )
+    )
 
 
 def _simulate(args) -> int:
@@ -298,11 +384,39 @@ def _simulate(args) -> int:
     study = studies.get(name)
     r0_euler = getattr(args, "r0_euler", None)
     if name == "complementary":
-        _refuse(args, ["trajectory", "rate_scale", "latitude", "reference", "gyro_arw", "mag_noise", "r0", "x1_init",
-                       "m_init", "integrator", "x2_0", "v0", "epsilon"], name)
-        kw = _given(args, {"scenario": "scenario", "form": "form", "gain": "gain", "k_i": "k_i",
-                           "gyro_noise": "gyro_noise_std", "vector_noise": "meas_noise_std",
-                           "noise_scale": "noise_scale", "dt": "dt", "window_start": "window_start"})
+        _refuse(
+            args,
+            [
+                "trajectory",
+                "rate_scale",
+                "latitude",
+                "reference",
+                "gyro_arw",
+                "mag_noise",
+                "r0",
+                "x1_init",
+                "m_init",
+                "integrator",
+                "x2_0",
+                "v0",
+                "epsilon",
+            ],
+            name,
+        )
+        kw = _given(
+            args,
+            {
+                "scenario": "scenario",
+                "form": "form",
+                "gain": "gain",
+                "k_i": "k_i",
+                "gyro_noise": "gyro_noise_std",
+                "vector_noise": "meas_noise_std",
+                "noise_scale": "noise_scale",
+                "dt": "dt",
+                "window_start": "window_start",
+            },
+        )
         if "scenario" in kw:
             kw["scenario"] = kw["scenario"].replace("-", "_")
         if args.gyro_bias is not None:
@@ -312,10 +426,21 @@ def _simulate(args) -> int:
         title = f"complementary simulate ({kw.get('scenario', 'rotating')})"
     else:
         _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise"], name)
-        kw = _given(args, {"trajectory": "trajectory", "rate_scale": "rate_scale", "latitude": "latitude_deg",
-                           "reference": "reference_nT", "gyro_arw": "gyro_arw_deg_h_rthz", "mag_noise": "mag_noise_nT",
-                           "noise_scale": "noise_scale", "gyro_bias": "gyro_bias", "dt": "dt",
-                           "window_start": "window_start"})
+        kw = _given(
+            args,
+            {
+                "trajectory": "trajectory",
+                "rate_scale": "rate_scale",
+                "latitude": "latitude_deg",
+                "reference": "reference_nT",
+                "gyro_arw": "gyro_arw_deg_h_rthz",
+                "mag_noise": "mag_noise_nT",
+                "noise_scale": "noise_scale",
+                "gyro_bias": "gyro_bias",
+                "dt": "dt",
+                "window_start": "window_start",
+            },
+        )
         if args.r0 is not None and r0_euler is not None:
             raise UserError("give --r0 or --r0-euler, not both")
         if args.r0 is not None:
@@ -324,9 +449,21 @@ def _simulate(args) -> int:
             kw["r_hat_0"] = tuple(np.asarray(so3.euler_zyx_to_matrix(*np.deg2rad(r0_euler))).reshape(9))
         title = f"{name} simulate"
     cfg = _study_config(study, args, kw)
-    return _finish_study(studies.reproduce(study, cfg, runs=args.runs, seed=args.seed, chunk=args.chunk,
-                                           dtype=_dtype(args), json_path=args.json, plot_path=args.plot,
-                                           quiet=args.quiet, progress=_progress(args), title=title))
+    return _finish_study(
+        studies.reproduce(
+            study,
+            cfg,
+            runs=args.runs,
+            seed=args.seed,
+            chunk=args.chunk,
+            dtype=_dtype(args),
+            json_path=args.json,
+            plot_path=args.plot,
+            quiet=args.quiet,
+            progress=_progress(args),
+            title=title,
+        )
+    )
 
 
 def _progress(args):
@@ -347,9 +484,22 @@ def _tune(args) -> int:
     from .fitting import fitter
 
     config = {"duration": args.duration} if args.duration is not None else None
-    res = fitter.fit(None, None, args.experiment, steps=args.steps, train_runs=args.train_runs, val_runs=args.val_runs,
-                     out=args.out, seed=args.seed, lr=args.lr, config=config, refine_schedule=args.refine_schedule,
-                     resume=args.resume, overwrite=args.overwrite, quiet=args.quiet)
+    res = fitter.fit(
+        None,
+        None,
+        args.experiment,
+        steps=args.steps,
+        train_runs=args.train_runs,
+        val_runs=args.val_runs,
+        out=args.out,
+        seed=args.seed,
+        lr=args.lr,
+        config=config,
+        refine_schedule=args.refine_schedule,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        quiet=args.quiet,
+    )
     print(f"gains written to {args.out} ({res.status})")
     return _fit_status(res)
 
@@ -375,20 +525,32 @@ def _evaluate(args) -> int:
     if args.gains:
         d = gainsfile.read(args.gains)
         if d.get("study") not in (None, study.name) or d["observer"] != s.entry:
-            raise UserError(f"--gains {args.gains}: holds gains of {d['observer']!r} "
-                            f"({d.get('study') or 'recorded data'}), not of {study.name}")
+            raise UserError(
+                f"--gains {args.gains}: holds gains of {d['observer']!r} "
+                f"({d.get('study') or 'recorded data'}), not of {study.name}"
+            )
         params = gainsfile.apply(s.params, d["gains"], source=f"--gains {args.gains}")
         source = args.gains
         tun = d.get("settings", {})
         if tun.get("seed") == args.seed:
             used = set(range(*tun.get("train_run_indices", [0, 0]))) | set(range(*tun.get("val_run_indices", [0, 0])))
             if used & set(range(args.runs)):
-                warn = (f"warning: {len(used & set(range(args.runs)))} evaluation runs were used for tuning (same seed "
-                        f"{args.seed}); use another --seed for held-out numbers")
+                warn = (
+                    f"warning: {len(used & set(range(args.runs)))} evaluation runs were used for tuning (same seed "
+                    f"{args.seed}); use another --seed for held-out numbers"
+                )
     if warn and not args.quiet:
         print(warn, file=sys.stderr)
-    payload = studies.evaluate(study, params, runs=args.runs, seed=args.seed, json_path=args.json, cfg=cfg,
-                               gains_source=source, quiet=args.quiet)
+    payload = studies.evaluate(
+        study,
+        params,
+        runs=args.runs,
+        seed=args.seed,
+        json_path=args.json,
+        cfg=cfg,
+        gains_source=source,
+        quiet=args.quiet,
+    )
     return _finish_study(payload)
 
 
@@ -403,10 +565,15 @@ def _broad_table(title: str, score) -> None:
     for n, v in score.trials.items():
         print(f"{n:48s} {v.group:11s} {v.total_rmse_deg:7.2f} {v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}")
     for g, v in score.groups.items():
-        print(f"{'mean ' + g + ' (' + str(v.n_trials) + ' trials)':60s} {v.total_rmse_deg:7.2f} "
-              f"{v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}")
-    print("anchors (mean total RMSE, deg): " + "; ".join(
-        f"{k}: {v['undisturbed']:.2f} / {v['disturbed']:.2f}" for k, v in ANCHORS.items()) + "  (undisturbed / disturbed)")
+        print(
+            f"{'mean ' + g + ' (' + str(v.n_trials) + ' trials)':60s} {v.total_rmse_deg:7.2f} "
+            f"{v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}"
+        )
+    print(
+        "anchors (mean total RMSE, deg): "
+        + "; ".join(f"{k}: {v['undisturbed']:.2f} / {v['disturbed']:.2f}" for k, v in ANCHORS.items())
+        + "  (undisturbed / disturbed)"
+    )
 
 
 def _broad(args) -> int:
@@ -421,13 +588,26 @@ def _broad(args) -> int:
     source = args.gains or (f"shipped gains {shipped}" if shipped else "default gains")
     _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
     params = api.resolve_observer(args.observer, args.gains)[1]
-    io.write_json(args.json, {
-        "observer": score.observer, "gains": {k: np.asarray(v).tolist() for k, v in params._asdict().items()},
-        "gains_source": source, "dtype": dtype, "wall_s": score.wall_s, "anchors": broad.ANCHORS,
-        "data": broad.ATTRIBUTION, "environment": io.environment(),
-        "trials": {n: {"group": s.group, **{m: getattr(s, m) for m in broad.METRICS}} for n, s in score.trials.items()},
-        "groups": {g: {"n_trials": s.n_trials, **{m: getattr(s, m) for m in broad.METRICS}}
-                   for g, s in score.groups.items()}})
+    io.write_json(
+        args.json,
+        {
+            "observer": score.observer,
+            "gains": {k: np.asarray(v).tolist() for k, v in params._asdict().items()},
+            "gains_source": source,
+            "dtype": dtype,
+            "wall_s": score.wall_s,
+            "anchors": broad.ANCHORS,
+            "data": broad.ATTRIBUTION,
+            "environment": io.environment(),
+            "trials": {
+                n: {"group": s.group, **{m: getattr(s, m) for m in broad.METRICS}} for n, s in score.trials.items()
+            },
+            "groups": {
+                g: {"n_trials": s.n_trials, **{m: getattr(s, m) for m in broad.METRICS}}
+                for g, s in score.groups.items()
+            },
+        },
+    )
     return 0
 
 
@@ -436,9 +616,19 @@ def _broad_tune(args) -> int:
     from .fitting import fitter
 
     trials = broad.load(args.data_dir, args.trials)
-    res = fitter.fit(args.observer, None, trials, steps=args.steps, lr=args.lr, start=args.init_gains, out=args.out,
-                     resume=args.resume, overwrite=args.overwrite, quiet=args.quiet,
-                     dtype="float64" if args.float64 else "float32")
+    res = fitter.fit(
+        args.observer,
+        None,
+        trials,
+        steps=args.steps,
+        lr=args.lr,
+        start=args.init_gains,
+        out=args.out,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        quiet=args.quiet,
+        dtype="float64" if args.float64 else "float32",
+    )
     print(f"gains written to {args.out} ({res.status})")
     return _fit_status(res)
 
@@ -494,9 +684,17 @@ def _filter(args) -> int:
         observer, params = args.observer, args.gains
     samples, rate = _load_any_log(args.log)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
-    est = api.filter(observer, samples.gyr, samples.acc, samples.mag, dt=dt,
-                     t=None if dt is not None else samples.t, params=params, frame=args.frame,
-                     dtype="float32" if args.float32 else None)
+    est = api.filter(
+        observer,
+        samples.gyr,
+        samples.acc,
+        samples.mag,
+        dt=dt,
+        t=None if dt is not None else samples.t,
+        params=params,
+        frame=args.frame,
+        dtype="float32" if args.float32 else None,
+    )
     cols, names = [est.t, est.quat[:, 0], est.quat[:, 1], est.quat[:, 2], est.quat[:, 3]], ["t", "qw", "qx", "qy", "qz"]
     for k, v in est.outputs.items():
         if k in ("t", "q", "r"):
@@ -518,8 +716,10 @@ def _filter(args) -> int:
         f.write(",".join(names) + "\n")
         np.savetxt(f, table, delimiter=",", fmt="%.17g")
     os.replace(tmp, out)
-    print(f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
-          f"with columns {', '.join(names)}")
+    print(
+        f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
+        f"with columns {', '.join(names)}"
+    )
     return 0
 
 
@@ -557,22 +757,33 @@ def _excitation(args) -> int:
     lam = np.asarray(res.lambda2) / T
     bad = lam < args.threshold
     print(f"excitation of {source}: {len(lam)} windows of T = {T:g} s")
-    rows = [("lambda2 / T  (Def. 3.3/4.1)", lam), ("lambda_min projector / T (Lemma 3.4/4.2)",
-                                                   np.asarray(res.lambda_min_projector) / T),
-            ("condition (6)/(13) / T", np.asarray(res.condition) / T)]
+    rows = [
+        ("lambda2 / T  (Def. 3.3/4.1)", lam),
+        ("lambda_min projector / T (Lemma 3.4/4.2)", np.asarray(res.lambda_min_projector) / T),
+        ("condition (6)/(13) / T", np.asarray(res.condition) / T),
+    ]
     print(f"{'measure':42s} {'min':>10s} {'median':>10s} {'max':>10s}")
     for label, v in rows:
         print(f"{label:42s} {np.min(v):10.4g} {np.median(v):10.4g} {np.max(v):10.4g}")
     if bad.any():
         t0 = np.asarray(res.t_start)[bad]
-        print(f"NOT exciting (lambda2/T < {args.threshold:g}) in {bad.mean() * 100:.1f} % of the windows, "
-              f"first at t = {t0[0]:.2f} s, last at t = {t0[-1]:.2f} s")
+        print(
+            f"NOT exciting (lambda2/T < {args.threshold:g}) in {bad.mean() * 100:.1f} % of the windows, "
+            f"first at t = {t0[0]:.2f} s, last at t = {t0[-1]:.2f} s"
+        )
     else:
         print(f"exciting in every window (lambda2/T >= {args.threshold:g})")
     if args.json:
-        io.write_json(args.json, {"source": source, "window_s": T, "threshold": args.threshold,
-                                  "measures": {k: np.asarray(v).tolist() for k, v in res._asdict().items()},
-                                  "environment": io.environment()})
+        io.write_json(
+            args.json,
+            {
+                "source": source,
+                "window_s": T,
+                "threshold": args.threshold,
+                "measures": {k: np.asarray(v).tolist() for k, v in res._asdict().items()},
+                "environment": io.environment(),
+            },
+        )
         print(f"results written to {args.json}")
     if args.plot:
         from . import plot
@@ -586,8 +797,16 @@ def _excitation(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------------------------
-_COMMANDS = {"filter": _filter, "reproduce": _reproduce, "simulate": _simulate, "tune": _tune, "evaluate": _evaluate,
-             "broad": _broad, "broad-tune": _broad_tune, "excitation": _excitation}
+_COMMANDS = {
+    "filter": _filter,
+    "reproduce": _reproduce,
+    "simulate": _simulate,
+    "tune": _tune,
+    "evaluate": _evaluate,
+    "broad": _broad,
+    "broad-tune": _broad_tune,
+    "excitation": _excitation,
+}
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -27,6 +27,7 @@ Precision: ``init`` runs on the params in the observer's dtype and the first sam
 (float64 data or simulation: a float32 filter starts from the state a float64 start computes, as BROAD's
 ``setState``); the state is then cast to the observer's dtype, and every step runs in that dtype.
 """
+
 from __future__ import annotations
 
 import functools
@@ -40,9 +41,24 @@ from . import so3
 from .sim import imu
 from .types import HOLDS, Interval, Observer
 
-__all__ = ["BLOCK", "Reducer", "Simulated", "Recorded", "Result", "batch_fn", "initial_output", "segment_length",
-           "cast_floats", "check_hold", "INIT_PARAMS_BLOCK", "compiled", "records_of", "estimate_r",
-           "estimate_q", "Static"]
+__all__ = [
+    "BLOCK",
+    "Reducer",
+    "Simulated",
+    "Recorded",
+    "Result",
+    "batch_fn",
+    "initial_output",
+    "segment_length",
+    "cast_floats",
+    "check_hold",
+    "INIT_PARAMS_BLOCK",
+    "compiled",
+    "records_of",
+    "estimate_r",
+    "estimate_q",
+    "Static",
+]
 
 #: Steps per block (the simulator's noise block): the unit of the scan, of progress reports and of checkpointing.
 BLOCK = imu.NOISE_BLOCK
@@ -60,7 +76,8 @@ def check_hold(hold: str) -> str:
 def cast_floats(tree, dtype):
     """``tree`` with every floating leaf cast to ``dtype`` (others untouched; None leaves stay None)."""
     return jax.tree_util.tree_map(
-        lambda a: a.astype(dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree)
+        lambda a: a.astype(dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree
+    )
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -240,8 +257,10 @@ def initial_output(observer: Observer, params, state, sample0, dt):
         return type(shape)(*(None if s is None else fill(n, s) for n, s in zip(shape._fields, shape)))
     if isinstance(shape, dict):
         return {n: fill(n, s) for n, s in shape.items()}
-    raise TypeError(f"{observer.name}: cannot build estimate 0 from the state: give the observer an "
-                    "output(params, state) function, or return a NamedTuple or dict from step")
+    raise TypeError(
+        f"{observer.name}: cannot build estimate 0 from the state: give the observer an "
+        "output(params, state) function, or return a NamedTuple or dict from step"
+    )
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -285,8 +304,18 @@ def _concat_records(parts):
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, 0), *parts)
 
 
-def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh", obs_dtype=None, segment: int = 0,
-             step_remat: bool = False, progress: Union[bool, str] = False, keep_state: bool = False):
+def batch_fn(
+    observer: Observer,
+    source,
+    reducer: Reducer,
+    *,
+    hold: str = "zoh",
+    obs_dtype=None,
+    segment: int = 0,
+    step_remat: bool = False,
+    progress: Union[bool, str] = False,
+    keep_state: bool = False,
+):
     """``fn(world, params, batch) -> Result``: the scan of ``observer`` over every run of ``batch``.
 
     Args:
@@ -347,13 +376,14 @@ def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh",
 
         def run_steps(carry, block_index, offset, length):
             """``length`` steps (rows offset ... offset + length - 1 of block ``block_index``)."""
-            xs = jax.vmap(lambda item: source.block(world, item, block_index, offset, length),
-                          out_axes=-1)(batch)  # (length, ..., B)
+            xs = jax.vmap(lambda item: source.block(world, item, block_index, offset, length), out_axes=-1)(
+                batch
+            )  # (length, ..., B)
             carry, rec = jax.lax.scan(step, carry, xs)
             if progress:
                 jax.debug.callback(_report, block_index * BLOCK + offset + length, ordered=progress == "ordered")
             if every:
-                rec = jax.tree_util.tree_map(lambda a: a[every - 1::every], rec)
+                rec = jax.tree_util.tree_map(lambda a: a[every - 1 :: every], rec)
             else:
                 rec = None
             return carry, rec
@@ -363,8 +393,11 @@ def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh",
         parts = [jax.tree_util.tree_map(lambda a: a[None], rec0) if every else None]
 
         def flat(rec):  # (n_seg, per_seg, ...) -> (n_seg * per_seg, ...)
-            return None if rec is None else jax.tree_util.tree_map(
-                lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), rec)
+            return (
+                None
+                if rec is None
+                else jax.tree_util.tree_map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), rec)
+            )
 
         if c <= BLOCK:  # segments inside blocks (c divides BLOCK)
             n_seg = n_steps // c
@@ -391,20 +424,29 @@ def batch_fn(observer: Observer, source, reducer: Reducer, *, hold: str = "zoh",
 
             if n_seg:
                 carry, rec = jax.lax.scan(seg, carry, jnp.arange(n_seg))
-                parts.append(None if rec is None else jax.tree_util.tree_map(
-                    lambda a: a.reshape((a.shape[0] * a.shape[1] * a.shape[2],) + a.shape[3:]), rec))
+                parts.append(
+                    None
+                    if rec is None
+                    else jax.tree_util.tree_map(
+                        lambda a: a.reshape((a.shape[0] * a.shape[1] * a.shape[2],) + a.shape[3:]), rec
+                    )
+                )
             pos = n_seg * c
             q, r_ = divmod(n_steps - pos, BLOCK)
             if q:
-                carry, rec = jax.lax.scan(remat(lambda cr, j: run_steps(cr, j, 0, BLOCK)), carry,
-                                          pos // BLOCK + jnp.arange(q))
+                carry, rec = jax.lax.scan(
+                    remat(lambda cr, j: run_steps(cr, j, 0, BLOCK)), carry, pos // BLOCK + jnp.arange(q)
+                )
                 parts.append(flat(rec))
             if r_:
                 carry, rec = remat(lambda cr: run_steps(cr, pos // BLOCK + q, 0, r_))(carry)
                 parts.append(rec)
         acc = carry[4]
-        summary = jax.vmap(reducer.finish, in_axes=-1, out_axes=0)(acc) if jax.tree_util.tree_leaves(acc) else \
-            reducer.finish(acc)
+        summary = (
+            jax.vmap(reducer.finish, in_axes=-1, out_axes=0)(acc)
+            if jax.tree_util.tree_leaves(acc)
+            else reducer.finish(acc)
+        )
         records = _concat_records(parts) if every else None
         if records is not None:
             records = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), records)  # (B, n_rec, ...)
@@ -429,12 +471,21 @@ class Static:
 
 
 @functools.lru_cache(maxsize=64)
-def compiled(observer: Observer, source, reducer: Reducer, mesh=None, post: Optional[Callable] = None,
-             out_specs=None, reduce: Optional[Callable] = None, **static):
+def compiled(
+    observer: Observer,
+    source,
+    reducer: Reducer,
+    mesh=None,
+    post: Optional[Callable] = None,
+    out_specs=None,
+    reduce: Optional[Callable] = None,
+    **static,
+):
     """``jit(fn(world, params, batch))`` of :func:`batch_fn` (``post(result)`` applied to its Result inside,
     e.g. a loss averaged over runs), with the runs split over ``mesh`` (None: one device;
-    :func:`jaxatt.sharding.shard_runs` with ``out_specs`` (a :class:`Static` when unhashable) and ``reduce``). Cached on every argument, so calls
-    with new params, a world of the same structure or new runs reuse the compiled program."""
+    :func:`jaxatt.sharding.shard_runs` with ``out_specs`` (a :class:`Static` when unhashable) and ``reduce``).
+    Cached on every argument, so calls with new params, a world of the same structure or new runs reuse the
+    compiled program."""
     from . import sharding
 
     fn = batch_fn(observer, source, reducer, **static)

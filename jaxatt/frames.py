@@ -14,6 +14,7 @@ and BROAD. A quaternion q (Hamilton, scalar first (w, x, y, z)) maps sensor coor
 Units: the helpers below convert to jaxatt's SI inputs (rad/s, m/s^2); magnetometer data may stay in any unit
 (the observers that need a reference take it in the data's unit).
 """
+
 from __future__ import annotations
 
 import math
@@ -21,9 +22,27 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FRAMES", "frame_rotation", "change_frame", "change_vector_frame", "up", "to_xyzw", "from_xyzw",
-           "to_scipy", "from_scipy", "check_frame", "STANDARD_GRAVITY", "deg_s_to_rad_s", "rad_s_to_deg_s",
-           "g_to_m_s2", "m_s2_to_g", "gauss_to_ut", "ut_to_gauss", "nt_to_ut", "ut_to_nt"]
+__all__ = [
+    "FRAMES",
+    "frame_rotation",
+    "change_frame",
+    "change_vector_frame",
+    "up",
+    "to_xyzw",
+    "from_xyzw",
+    "to_scipy",
+    "from_scipy",
+    "check_frame",
+    "STANDARD_GRAVITY",
+    "deg_s_to_rad_s",
+    "rad_s_to_deg_s",
+    "g_to_m_s2",
+    "m_s2_to_g",
+    "gauss_to_ut",
+    "ut_to_gauss",
+    "nt_to_ut",
+    "ut_to_nt",
+]
 
 FRAMES = ("ENU", "NED", "NWU")
 
@@ -54,7 +73,9 @@ def frame_rotation(to: str, frm: str = "ENU") -> np.ndarray:
 def _matrix_to_quat_np(r: np.ndarray) -> np.ndarray:
     w = math.sqrt(max(0.0, 1.0 + np.trace(r))) / 2.0
     if w > 1e-6:
-        return np.array([w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)])
+        return np.array(
+            [w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)]
+        )
     # 180-degree rotation (the NED <-> ENU case): axis from the diagonal
     x = math.sqrt(max(0.0, (1 + r[0, 0] - r[1, 1] - r[2, 2]) / 4))
     y = math.sqrt(max(0.0, (1 - r[0, 0] + r[1, 1] - r[2, 2]) / 4))
@@ -69,8 +90,15 @@ def _matrix_to_quat_np(r: np.ndarray) -> np.ndarray:
 def _qmul_np(a, b):
     aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)
     bw, bx, by, bz = np.moveaxis(np.asarray(b), -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
 
 
 def change_frame(q, to: str, frm: str = "ENU"):

@@ -12,6 +12,7 @@ used; docs/observers/batista_ges.md discusses both):
 A step receives a :class:`Interval` (start and end samples) in the linear mode and a plain sample otherwise;
 :func:`input_at` hides the difference from the observer.
 """
+
 from __future__ import annotations
 
 from typing import Any, Callable
@@ -81,8 +82,9 @@ def rkmk4_step(f: Callable[[Any, tuple, Any], tuple], x: Any, frames: tuple, u: 
 
     def stage(k_prev, frac_x, frac_u):
         if k_prev is None:
-            return f(x, frames, input_at(u, frac_u)), tuple(jnp.zeros_like(g[..., 0, :] if s > 0 else g)
-                                                            for g, s in zip(frames, sides))
+            return f(x, frames, input_at(u, frac_u)), tuple(
+                jnp.zeros_like(g[..., 0, :] if s > 0 else g) for g, s in zip(frames, sides)
+            )
         dx, om = k_prev
         phis = tuple(frac_x * dt * w for w in om)
         xs = _axpy(frac_x * dt, dx, x)
@@ -113,7 +115,7 @@ def lie_rk4_step(r: jax.Array, omega_fn: Callable[[jax.Array, float], jax.Array]
     return rkmk4_step(f, (), (r,), Interval(0.0, 1.0), dt)[1][0]
 
 
-_GL = 3.0 ** 0.5 / 6.0
+_GL = 3.0**0.5 / 6.0
 
 
 def magnus4_step(r: jax.Array, rate_fn: Callable[[jax.Array], jax.Array], t, dt) -> jax.Array:
@@ -123,5 +125,5 @@ def magnus4_step(r: jax.Array, rate_fn: Callable[[jax.Array], jax.Array], t, dt)
     """
     w1 = rate_fn(t + (0.5 - _GL) * dt)
     w2 = rate_fn(t + (0.5 + _GL) * dt)
-    phi = 0.5 * dt * (w1 + w2) + (3.0 ** 0.5 / 12.0) * dt * dt * so3.cross(w1, w2)
+    phi = 0.5 * dt * (w1 + w2) + (3.0**0.5 / 12.0) * dt * dt * so3.cross(w1, w2)
     return so3.mm(r, so3.exp(phi))

@@ -1,5 +1,6 @@
 """Files written by jaxatt: one atomic JSON writer, output paths checked before any computation, and the
 provenance recorded with every result (machine, versions, git commit, command line, XLA flags, devices, date)."""
+
 from __future__ import annotations
 
 import datetime
@@ -106,9 +107,17 @@ def summarise(per_run) -> dict:
         if v.size == 0:
             continue
         with np.errstate(invalid="ignore"):
-            stat = lambda f: f(v, axis=0).tolist() if v.ndim > 1 else float(f(v))  # noqa: E731
-            out[k] = {"mean": stat(np.nanmean), "std": stat(np.nanstd), "min": stat(np.nanmin),
-                      "max": stat(np.nanmax), "per_run": v.tolist()}
+
+            def stat(f, v=v):
+                return f(v, axis=0).tolist() if v.ndim > 1 else float(f(v))
+
+            out[k] = {
+                "mean": stat(np.nanmean),
+                "std": stat(np.nanstd),
+                "min": stat(np.nanmin),
+                "max": stat(np.nanmax),
+                "per_run": v.tolist(),
+            }
     return out
 
 
@@ -129,10 +138,15 @@ def _git_commit() -> Optional[str]:
     if not (here / ".git").exists():
         return None
     try:
-        rev = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True,
-                             timeout=5).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=5).stdout.strip()
+        rev = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
     return (rev + ("+dirty" if dirty else "")) if rev else None
@@ -153,8 +167,12 @@ def environment() -> dict:
         "cpu_model": _cpu_model(),
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
-        "versions": {"jaxatt": __version__, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
-                     "numpy": np.__version__},
+        "versions": {
+            "jaxatt": __version__,
+            "jax": jax.__version__,
+            "jaxlib": jaxlib.__version__,
+            "numpy": np.__version__,
+        },
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
         "x64": bool(jax.config.jax_enable_x64),

@@ -6,6 +6,7 @@
 * :class:`WindowMoments`: per-run mean absolute error and RMS of named errors over several named time windows
   (e.g. the transient 0-200 s and steady-state 300-500 s windows of sensors2020-interconnected-observer).
 """
+
 from __future__ import annotations
 
 from typing import Dict, NamedTuple
@@ -15,9 +16,22 @@ import jax.numpy as jnp
 
 from . import so3
 
-__all__ = ["RunningStats", "stats_init", "stats_update", "stats_std", "WindowMetrics", "window_init",
-           "window_update", "window_summary", "angle_error_deg", "WindowMoments", "moments_init", "moments_update",
-           "moments_summary", "check_windows"]
+__all__ = [
+    "RunningStats",
+    "stats_init",
+    "stats_update",
+    "stats_std",
+    "WindowMetrics",
+    "window_init",
+    "window_update",
+    "window_summary",
+    "angle_error_deg",
+    "WindowMoments",
+    "moments_init",
+    "moments_update",
+    "moments_summary",
+    "check_windows",
+]
 
 
 class RunningStats(NamedTuple):
@@ -67,7 +81,11 @@ def window_init(error_shapes: Dict[str, tuple], dtype) -> WindowMetrics:
     z = jnp.zeros((), dtype)
     return WindowMetrics(
         {k: stats_init(s, dtype) for k, s in error_shapes.items()},
-        z, z, z, z, {k: jnp.zeros(s, dtype) for k, s in error_shapes.items()},
+        z,
+        z,
+        z,
+        z,
+        {k: jnp.zeros(s, dtype) for k, s in error_shapes.items()},
     )
 
 
@@ -129,9 +147,11 @@ class WindowMoments(NamedTuple):
 
 
 def moments_init(error_shapes: Dict[str, tuple], n_windows: int, dtype) -> WindowMoments:
-    return WindowMoments(jnp.zeros((n_windows,), dtype),
-                         {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()},
-                         {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()})
+    return WindowMoments(
+        jnp.zeros((n_windows,), dtype),
+        {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()},
+        {k: jnp.zeros((n_windows,) + tuple(s), dtype) for k, s in error_shapes.items()},
+    )
 
 
 def moments_update(acc: WindowMoments, errors: Dict[str, jax.Array], t, windows, tol) -> WindowMoments:
@@ -146,9 +166,11 @@ def moments_update(acc: WindowMoments, errors: Dict[str, jax.Array], t, windows,
         e = f(e.astype(dtype))
         return total + w.reshape((-1,) + (1,) * e.ndim) * e[None]
 
-    return WindowMoments(acc.count + w,
-                         {k: add(acc.sum_abs[k], errors[k], jnp.abs) for k in acc.sum_abs},
-                         {k: add(acc.sum_sq[k], errors[k], jnp.square) for k in acc.sum_sq})
+    return WindowMoments(
+        acc.count + w,
+        {k: add(acc.sum_abs[k], errors[k], jnp.abs) for k in acc.sum_abs},
+        {k: add(acc.sum_sq[k], errors[k], jnp.square) for k in acc.sum_sq},
+    )
 
 
 def moments_summary(acc: WindowMoments, windows) -> Dict[str, jax.Array]:

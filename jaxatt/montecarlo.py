@@ -10,6 +10,7 @@ seed k inside a batch of 1000 give the same run. Decimated traces are kept only 
 Alignment (:mod:`jaxatt.engine`): T samples give T estimates, estimate 0 being ``init``'s; the window metrics
 count estimates 1 ... T-1 (the steps), traces start at estimate 0.
 """
+
 from __future__ import annotations
 
 import functools
@@ -28,8 +29,19 @@ from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
 from .types import ImuSample, Observer
 
-__all__ = ["run", "simulate", "simulate_log", "monte_carlo", "MonteCarloResult", "check_dt", "run_keys",
-           "INIT_PARAMS_BLOCK", "metrics_reducer", "default_trace", "log_runner"]
+__all__ = [
+    "run",
+    "simulate",
+    "simulate_log",
+    "monte_carlo",
+    "MonteCarloResult",
+    "check_dt",
+    "run_keys",
+    "INIT_PARAMS_BLOCK",
+    "metrics_reducer",
+    "default_trace",
+    "log_runner",
+]
 
 
 def check_dt(dt) -> float:
@@ -86,10 +98,14 @@ def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
         dt = jnp.asarray(dt)  # cast to the arithmetic in the scan (give float32 steps for a bit-exact float32 run)
         per_step = dt.ndim == 1
         dts = jnp.concatenate([dt[:1], dt]) if per_step else dt
-        fn = engine.batch_fn(observer, engine.Recorded(n - 1, per_step), engine.records_of(_pick_out, 1), hold=hold,
-                             obs_dtype=odt)
-        item = {"samples": jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], samples), "dt": dts[None],
-                "truth": None}
+        fn = engine.batch_fn(
+            observer, engine.Recorded(n - 1, per_step), engine.records_of(_pick_out, 1), hold=hold, obs_dtype=odt
+        )
+        item = {
+            "samples": jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], samples),
+            "dt": dts[None],
+            "truth": None,
+        }
         return jax.tree_util.tree_map(lambda a: a[0], fn(None, params, item).records)
 
     return go
@@ -136,8 +152,14 @@ def default_trace(truth, out, errors: Dict[str, jax.Array], angle_deg) -> Dict[s
 
 
 @functools.lru_cache(maxsize=64)
-def metrics_reducer(errors_fn: ErrorsFn, window_start: float, windows: tuple = (), trace_every: int = 0,
-                    trace_fn: Optional[Callable] = None, tol: float = 0.0) -> engine.Reducer:
+def metrics_reducer(
+    errors_fn: ErrorsFn,
+    window_start: float,
+    windows: tuple = (),
+    trace_every: int = 0,
+    trace_fn: Optional[Callable] = None,
+    tol: float = 0.0,
+) -> engine.Reducer:
     """The Monte Carlo reducer: per-run window metrics (:func:`jaxatt.metrics.window_summary`) of the named
     errors of ``errors_fn(truth, out)`` and of the rotation angle over t >= ``window_start``; with ``windows``
     (((name, start_s, end_s), ...)) the MAE / RMSE of every error over each window (``tol``: half a step); with
@@ -187,8 +209,23 @@ def _dtypes(dtype):
     return obs, sim
 
 
-def _simulation(observer, *, duration, dt, errors_fn, window_start, hold, trace_every, trace_fn, dtype, windows,
-                init_params, mesh=None, progress=False, keep_state=False):
+def _simulation(
+    observer,
+    *,
+    duration,
+    dt,
+    errors_fn,
+    window_start,
+    hold,
+    trace_every,
+    trace_fn,
+    dtype,
+    windows,
+    init_params,
+    mesh=None,
+    progress=False,
+    keep_state=False,
+):
     """The compiled batch function of a simulated Monte Carlo (scenario, params, keys) -> engine.Result."""
     dt = check_dt(dt)
     engine.check_hold(hold)
@@ -199,30 +236,60 @@ def _simulation(observer, *, duration, dt, errors_fn, window_start, hold, trace_
         raise ValueError(f"trace_every must divide {engine.BLOCK}, got {trace_every}")
     obs_dtype, sim_dtype = _dtypes(dtype)
     source = engine.Simulated(n_steps, dt, sim_dtype, init_params)
-    reducer = metrics_reducer(errors_fn, float(window_start), M.check_windows(windows), int(trace_every or 0),
-                              trace_fn, 0.5 * dt)
-    return n_steps, engine.compiled(observer, source, reducer, mesh, hold=hold, obs_dtype=obs_dtype, progress=progress,
-                             keep_state=keep_state)
+    reducer = metrics_reducer(
+        errors_fn, float(window_start), M.check_windows(windows), int(trace_every or 0), trace_fn, 0.5 * dt
+    )
+    return n_steps, engine.compiled(
+        observer, source, reducer, mesh, hold=hold, obs_dtype=obs_dtype, progress=progress, keep_state=keep_state
+    )
 
 
-def simulate(scenario, observer: Observer, params, *, duration: float, dt: float, seed: int = 0, run_index: int = 0,
-             errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", trace_every: int = 1,
-             trace_fn=None, dtype=None, windows=(), init_params=None):
+def simulate(
+    scenario,
+    observer: Observer,
+    params,
+    *,
+    duration: float,
+    dt: float,
+    seed: int = 0,
+    run_index: int = 0,
+    errors_fn: ErrorsFn,
+    window_start: float = 0.0,
+    hold: str = "zoh",
+    trace_every: int = 1,
+    trace_fn=None,
+    dtype=None,
+    windows=(),
+    init_params=None,
+):
     """One simulated run; returns (summary dict, trace dict of arrays, final observer state).
 
     ``trace_fn(truth, out, errors, angle_deg) -> dict`` picks what is recorded every ``trace_every`` estimates
     (default: time, angle error, error norms), from estimate 0 at t = 0. ``windows`` and ``init_params`` as in
     :func:`monte_carlo`.
     """
-    _, fn = _simulation(observer, duration=duration, dt=dt, errors_fn=errors_fn, window_start=window_start,
-                        hold=hold, trace_every=trace_every, trace_fn=trace_fn, dtype=dtype, windows=windows,
-                        init_params=init_params, keep_state=True)
+    _, fn = _simulation(
+        observer,
+        duration=duration,
+        dt=dt,
+        errors_fn=errors_fn,
+        window_start=window_start,
+        hold=hold,
+        trace_every=trace_every,
+        trace_fn=trace_fn,
+        dtype=dtype,
+        windows=windows,
+        init_params=init_params,
+        keep_state=True,
+    )
     res = fn(scenario, params, run_keys(seed, [run_index]))
     first = lambda a: np.asarray(a)[0]  # noqa: E731
     scalar = lambda a: float(first(a)) if np.ndim(a) == 1 else first(a)  # noqa: E731
-    return ({k: scalar(v) for k, v in res.summary.items()},
-            jax.tree_util.tree_map(first, res.records) if res.records is not None else None,
-            jax.tree_util.tree_map(lambda a: a[0], res.state))
+    return (
+        {k: scalar(v) for k, v in res.summary.items()},
+        jax.tree_util.tree_map(first, res.records) if res.records is not None else None,
+        jax.tree_util.tree_map(lambda a: a[0], res.state),
+    )
 
 
 def _sample_state_init(p, sample):
@@ -255,8 +322,13 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
         raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
     keys = run_keys(seed, [run_index]) if key is None else jnp.asarray(key)[None]
     _, sim_dtype = _dtypes(None)
-    fn = engine.compiled(_SAMPLES, engine.Simulated(n_steps, dt, sim_dtype), engine.records_of(_pick_sample_truth, 1),
-                  hold="next", obs_dtype=sim_dtype)
+    fn = engine.compiled(
+        _SAMPLES,
+        engine.Simulated(n_steps, dt, sim_dtype),
+        engine.records_of(_pick_sample_truth, 1),
+        hold="next",
+        obs_dtype=sim_dtype,
+    )
     samples, truth = fn(scenario, None, keys).records
     return jax.tree_util.tree_map(lambda a: a[0], samples), jax.tree_util.tree_map(lambda a: a[0], truth)
 
@@ -272,12 +344,30 @@ class MonteCarloResult(NamedTuple):
     complete: bool
 
 
-def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: float, dt: float, seed: int = 0,
-                errors_fn: ErrorsFn, window_start: float = 0.0, hold: str = "zoh", chunk: int = 250,
-                trace_every: int = 0, trace_fn=None, dtype=None, validate: Optional[Callable] = None,
-                on_chunk: Optional[Callable[[MonteCarloResult], None]] = None, windows=(),
-                init_params: Optional[Callable] = None, devices=None, progress=None,
-                skip_runs=()) -> MonteCarloResult:
+def monte_carlo(
+    scenario,
+    observer: Observer,
+    params,
+    *,
+    runs: int,
+    duration: float,
+    dt: float,
+    seed: int = 0,
+    errors_fn: ErrorsFn,
+    window_start: float = 0.0,
+    hold: str = "zoh",
+    chunk: int = 250,
+    trace_every: int = 0,
+    trace_fn=None,
+    dtype=None,
+    validate: Optional[Callable] = None,
+    on_chunk: Optional[Callable[[MonteCarloResult], None]] = None,
+    windows=(),
+    init_params: Optional[Callable] = None,
+    devices=None,
+    progress=None,
+    skip_runs=(),
+) -> MonteCarloResult:
     """``runs`` simulated runs, vmapped in chunks of ``chunk`` runs, metrics reduced on the fly.
 
     ``windows`` = ((name, start_s, end_s), ...): per-run ``mae_{name}_{error}`` and ``rmse_{name}_{error}`` of
@@ -308,9 +398,21 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
     # ordered host callbacks are not supported on several devices: there the reports may arrive out of order
     # and jaxatt.progress keeps them monotone
     hook = False if reporter is None else ("ordered" if mesh is None else "unordered")
-    n_steps, fn = _simulation(observer, duration=duration, dt=dt, errors_fn=errors_fn, window_start=window_start,
-                              hold=hold, trace_every=trace_every, trace_fn=trace_fn, dtype=dtype, windows=windows,
-                              init_params=init_params, mesh=mesh, progress=hook)
+    n_steps, fn = _simulation(
+        observer,
+        duration=duration,
+        dt=dt,
+        errors_fn=errors_fn,
+        window_start=window_start,
+        hold=hold,
+        trace_every=trace_every,
+        trace_fn=trace_fn,
+        dtype=dtype,
+        windows=windows,
+        init_params=init_params,
+        mesh=mesh,
+        progress=hook,
+    )
     todo = np.asarray([k for k in range(runs) if k not in set(int(i) for i in skip_runs)], int)
     chunk = max(1, min(chunk, max(len(todo), 1)))
     if mesh is not None:
@@ -328,7 +430,7 @@ def monte_carlo(scenario, observer: Observer, params, *, runs: int, duration: fl
 
     try:
         for start in range(0, len(todo), chunk):
-            idx = todo[start:start + chunk]
+            idx = todo[start : start + chunk]
             pad = chunk - len(idx)  # keep one compiled shape: pad the last chunk, drop the padding
             keys = run_keys(seed, np.concatenate([idx, np.full(pad, idx[-1])]))
             if prog is not None:

@@ -15,6 +15,7 @@ Backend: when pyplot has not been imported yet and ``MPLBACKEND`` is unset (scri
 "Agg" backend is selected; in a notebook (pyplot already imported, or ``MPLBACKEND`` set by the kernel) the
 session's backend is left alone, so figures show inline.
 """
+
 from __future__ import annotations
 
 import os
@@ -24,8 +25,18 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-__all__ = ["envelope", "convergence_plot", "convergence_figure", "angle_error_plot", "euler_error_deg",
-           "euler_trace", "euler_error_plot", "tuning_curves", "comparison_plot", "save"]
+__all__ = [
+    "envelope",
+    "convergence_plot",
+    "convergence_figure",
+    "angle_error_plot",
+    "euler_error_deg",
+    "euler_trace",
+    "euler_error_plot",
+    "tuning_curves",
+    "comparison_plot",
+    "save",
+]
 
 EULER_NAMES = ("roll", "pitch", "yaw")
 
@@ -54,8 +65,16 @@ def save(fig, path: Union[str, Path], *, dpi: int = 110, close: bool = False) ->
 # ------------------------------------------------------------------------------------------------------
 # Monte Carlo envelopes
 # ------------------------------------------------------------------------------------------------------
-def envelope(ax, t, traces: np.ndarray, label: str = "", color=None, *,
-             bands: Sequence[Tuple[float, float]] = ((5, 95), (25, 75)), floor: Optional[float] = None):
+def envelope(
+    ax,
+    t,
+    traces: np.ndarray,
+    label: str = "",
+    color=None,
+    *,
+    bands: Sequence[Tuple[float, float]] = ((5, 95), (25, 75)),
+    floor: Optional[float] = None,
+):
     """Median and percentile bands (default 5-95 % and 25-75 %) of ``traces`` (runs, n) against ``t`` (n,).
 
     NaN samples are ignored. ``floor`` clips the values from below (for log axes: zeros would vanish).
@@ -91,9 +110,15 @@ def _band_label(bands) -> str:
 # ------------------------------------------------------------------------------------------------------
 # Convergence figures (batista2019-ges Figs. 2-5, batista2019-so3 Figs. 1-4 style)
 # ------------------------------------------------------------------------------------------------------
-def convergence_plot(trace: Dict[str, np.ndarray], *, title: str = "", transient_s: float = 300.0,
-                     steady_from_s: float = 2400.0, panels: Optional[Dict[str, str]] = None,
-                     mc_traces: Optional[Dict[str, np.ndarray]] = None):
+def convergence_plot(
+    trace: Dict[str, np.ndarray],
+    *,
+    title: str = "",
+    transient_s: float = 300.0,
+    steady_from_s: float = 2400.0,
+    panels: Optional[Dict[str, str]] = None,
+    mc_traces: Optional[Dict[str, np.ndarray]] = None,
+):
     """The papers' convergence figures from one run's trace; returns the Figure.
 
     ``panels`` maps trace keys to axis labels (with units) for the initial-convergence panels (log scale,
@@ -115,8 +140,14 @@ def convergence_plot(trace: Dict[str, np.ndarray], *, title: str = "", transient
         ax.semilogy(t[early], np.maximum(np.asarray(trace[k])[early], 1e-300), label="run 0", **run_style)
         if tm is not None and k in mc_traces:
             sel = tm <= transient_s
-            envelope(ax, tm[sel], np.asarray(mc_traces[k])[:, sel], color="tab:blue", floor=1e-300,
-                     label="Monte Carlo median")
+            envelope(
+                ax,
+                tm[sel],
+                np.asarray(mc_traces[k])[:, sel],
+                color="tab:blue",
+                floor=1e-300,
+                label="Monte Carlo median",
+            )
         ax.set_ylabel(label)
         ax.set_xlim(0.0, min(transient_s, float(t[-1])))
         ax.grid(True, which="both", alpha=0.3)
@@ -132,8 +163,13 @@ def convergence_plot(trace: Dict[str, np.ndarray], *, title: str = "", transient
     if tm is not None:
         sel = tm >= steady_from_s
         mc_late = np.asarray(mc_traces["angle_error_deg"])[:, sel]
-        envelope(ax, tm[sel], mc_late, color="tab:blue",
-                 label=f"Monte Carlo median, {_band_label(((5, 95), (25, 75)))} ({len(mc_traces['t'])} runs)")
+        envelope(
+            ax,
+            tm[sel],
+            mc_late,
+            color="tab:blue",
+            label=f"Monte Carlo median, {_band_label(((5, 95), (25, 75)))} ({len(mc_traces['t'])} runs)",
+        )
         top = max(top, float(np.nanmax(np.nanpercentile(mc_late, 95, axis=0)))) if mc_late.size else top
     ax.set_ylabel("angle error (deg)")
     ax.set_xlabel("t (s)")
@@ -145,13 +181,21 @@ def convergence_plot(trace: Dict[str, np.ndarray], *, title: str = "", transient
     return fig
 
 
-def convergence_figure(trace: Dict[str, np.ndarray], path: str, *, title: str = "", transient_s: float = 300.0,
-                       steady_from_s: float = 2400.0, panels: Optional[Dict[str, str]] = None,
-                       mc_traces: Optional[Dict[str, np.ndarray]] = None):
+def convergence_figure(
+    trace: Dict[str, np.ndarray],
+    path: str,
+    *,
+    title: str = "",
+    transient_s: float = 300.0,
+    steady_from_s: float = 2400.0,
+    panels: Optional[Dict[str, str]] = None,
+    mc_traces: Optional[Dict[str, np.ndarray]] = None,
+):
     """:func:`convergence_plot` written to ``path`` (PNG) and closed; returns ``path`` (used by the CLI's
     ``--plot``)."""
-    fig = convergence_plot(trace, title=title, transient_s=transient_s, steady_from_s=steady_from_s, panels=panels,
-                           mc_traces=mc_traces)
+    fig = convergence_plot(
+        trace, title=title, transient_s=transient_s, steady_from_s=steady_from_s, panels=panels, mc_traces=mc_traces
+    )
     save(fig, path, close=True)
     return path
 
@@ -159,10 +203,19 @@ def convergence_figure(trace: Dict[str, np.ndarray], path: str, *, title: str = 
 # ------------------------------------------------------------------------------------------------------
 # Angle error over time
 # ------------------------------------------------------------------------------------------------------
-def angle_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
-                     mc_traces: Optional[Mapping[str, np.ndarray]] = None, *, ax=None, key: str = "angle_error_deg",
-                     logy: bool = True, t_range: Optional[Tuple[float, float]] = None, label: str = "run 0",
-                     mc_label: Optional[str] = None, color=None, title: str = ""):
+def angle_error_plot(
+    trace: Optional[Mapping[str, np.ndarray]] = None,
+    mc_traces: Optional[Mapping[str, np.ndarray]] = None,
+    *,
+    ax=None,
+    key: str = "angle_error_deg",
+    logy: bool = True,
+    t_range: Optional[Tuple[float, float]] = None,
+    label: str = "run 0",
+    mc_label: Optional[str] = None,
+    color=None,
+    title: str = "",
+):
     """Rotation-angle error (deg) against time: one run (``trace``: dict with ``t`` and ``key``, (n,)) and/or
     the Monte Carlo median and 5-95 % / 25-75 % bands (``mc_traces``: (runs, n) arrays). Returns the Axes."""
     plt = _plt()
@@ -173,8 +226,14 @@ def angle_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
         tm = np.asarray(mc_traces["t"])[0]
         vals = np.asarray(mc_traces[key])
         sel = _range(tm, t_range)
-        envelope(ax, tm[sel], vals[:, sel], color=color or "tab:blue", floor=floor,
-                 label=mc_label or f"median, {_band_label(((5, 95), (25, 75)))} ({vals.shape[0]} runs)")
+        envelope(
+            ax,
+            tm[sel],
+            vals[:, sel],
+            color=color or "tab:blue",
+            floor=floor,
+            label=mc_label or f"median, {_band_label(((5, 95), (25, 75)))} ({vals.shape[0]} runs)",
+        )
     if trace is not None:
         t = np.asarray(trace["t"])
         v = np.asarray(trace[key], float)
@@ -226,10 +285,17 @@ def euler_trace(truth, out, errors, angle_deg) -> Dict[str, object]:
     return {"t": truth.t, "angle_error_deg": angle_deg, "euler_error_deg": jnp.rad2deg(d)}
 
 
-def euler_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
-                     mc_traces: Optional[Mapping[str, np.ndarray]] = None, *, key: str = "euler_error_deg",
-                     t_range: Optional[Tuple[float, float]] = None, band: Tuple[float, float] = (5, 95),
-                     ylim: Optional[Tuple[float, float]] = None, title: str = "", axes=None):
+def euler_error_plot(
+    trace: Optional[Mapping[str, np.ndarray]] = None,
+    mc_traces: Optional[Mapping[str, np.ndarray]] = None,
+    *,
+    key: str = "euler_error_deg",
+    t_range: Optional[Tuple[float, float]] = None,
+    band: Tuple[float, float] = (5, 95),
+    ylim: Optional[Tuple[float, float]] = None,
+    title: str = "",
+    axes=None,
+):
     """Roll, pitch and yaw errors (deg) against time, one panel each; returns the Figure.
 
     ``trace``: one run, dict with ``t`` (n,) and ``key`` (n, 3) (e.g. from :func:`euler_trace`, or
@@ -249,16 +315,28 @@ def euler_error_plot(trace: Optional[Mapping[str, np.ndarray]] = None,
         lo, hi = np.nanpercentile(v[:, sel], band, axis=0)
         mean = np.nanmean(v[:, sel], axis=0)
         for i, ax in enumerate(axes):
-            ax.fill_between(tm[sel], lo[:, i], hi[:, i], color="tab:blue", alpha=0.25, lw=0,
-                            label=f"{band[0]:g}-{band[1]:g} % ({v.shape[0]} runs)")
+            ax.fill_between(
+                tm[sel],
+                lo[:, i],
+                hi[:, i],
+                color="tab:blue",
+                alpha=0.25,
+                lw=0,
+                label=f"{band[0]:g}-{band[1]:g} % ({v.shape[0]} runs)",
+            )
             ax.plot(tm[sel], mean[:, i], color="tab:blue", lw=1.0, label="Monte Carlo mean")
     if trace is not None:
         t = np.asarray(trace["t"])
         v = np.asarray(trace[key], float)
         sel = _range(t, t_range)
         for i, ax in enumerate(axes):
-            ax.plot(t[sel], v[sel, i], color="k" if mc_traces is not None else f"C{i}", lw=0.7,
-                    label="run 0" if mc_traces is not None else None)
+            ax.plot(
+                t[sel],
+                v[sel, i],
+                color="k" if mc_traces is not None else f"C{i}",
+                lw=0.7,
+                label="run 0" if mc_traces is not None else None,
+            )
     for i, ax in enumerate(axes):
         ax.set_ylabel(f"{EULER_NAMES[i]} error (deg)")
         ax.axhline(0.0, color="0.5", lw=0.5)
@@ -289,8 +367,9 @@ def _history_columns(history) -> Dict[str, np.ndarray]:
     return {k: np.array([float(h[k]) if h.get(k) is not None else np.nan for h in history]) for k in keys}
 
 
-def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, title: str = "",
-                  ylabel: Optional[str] = None):
+def tuning_curves(
+    history, *, ax=None, metric: str = "loss", logy: bool = True, title: str = "", ylabel: Optional[str] = None
+):
     """Training and held-out (validation) curves against the optimizer step; returns the Axes.
 
     ``history``: :attr:`jaxatt.fitting.fitter.FitResult.history` (a list of dicts with ``step``, ``train_loss``,
@@ -330,8 +409,15 @@ def tuning_curves(history, *, ax=None, metric: str = "loss", logy: bool = True, 
 # ------------------------------------------------------------------------------------------------------
 # Comparison with published numbers
 # ------------------------------------------------------------------------------------------------------
-def comparison_plot(ours: Mapping[str, float], paper: Mapping[str, float], *,
-                    labels: Optional[Mapping[str, str]] = None, ax=None, title: str = "", ours_label: str = "jaxatt"):
+def comparison_plot(
+    ours: Mapping[str, float],
+    paper: Mapping[str, float],
+    *,
+    labels: Optional[Mapping[str, str]] = None,
+    ax=None,
+    title: str = "",
+    ours_label: str = "jaxatt",
+):
     """Ratio ours / published for every key of ``paper`` that ``ours`` has (horizontal bars, log scale,
     1 = agreement), each bar annotated with both numbers; returns the Axes."""
     plt = _plt()
@@ -352,8 +438,14 @@ def comparison_plot(ours: Mapping[str, float], paper: Mapping[str, float], *,
     ax.set_yticklabels([(labels or {}).get(k, k) for k in keys], fontsize=8)
     for yi, k, r in zip(y, keys, ratio):
         x = np.log10(r)
-        ax.text(x + (0.02 if x >= 0 else -0.02) * lim * 2, yi, f"{float(ours[k]):.3g} vs {float(paper[k]):.3g}",
-                va="center", ha="left" if x >= 0 else "right", fontsize=7)
+        ax.text(
+            x + (0.02 if x >= 0 else -0.02) * lim * 2,
+            yi,
+            f"{float(ours[k]):.3g} vs {float(paper[k]):.3g}",
+            va="center",
+            ha="left" if x >= 0 else "right",
+            fontsize=7,
+        )
     ax.set_xlabel(f"{ours_label} / published (log scale)")
     ax.grid(True, axis="x", alpha=0.3)
     if title:

@@ -12,6 +12,7 @@ through ``jax.debug.callback`` - never a Python loop over time steps. What is sh
 :func:`jaxatt.montecarlo.monte_carlo` reports per block and per chunk; :func:`jaxatt.fit` reports per
 optimizer step (its ``callback``).
 """
+
 from __future__ import annotations
 
 import sys
@@ -44,8 +45,10 @@ class TextProgress:
         frac = info["run_steps_done"] / max(info["run_steps_total"], 1)
         rate = info["run_steps_done"] / max(info["elapsed_s"], 1e-9)
         left = (info["run_steps_total"] - info["run_steps_done"]) / max(rate, 1e-9)
-        self.file.write(f"\r{self.label}: {100 * frac:5.1f} %  runs {info['runs_done']}/{info['runs_total']}  "
-                        f"{rate:.3g} run-steps/s  {left:.0f} s left   " + ("\n" if final else ""))
+        self.file.write(
+            f"\r{self.label}: {100 * frac:5.1f} %  runs {info['runs_done']}/{info['runs_total']}  "
+            f"{rate:.3g} run-steps/s  {left:.0f} s left   " + ("\n" if final else "")
+        )
         self.file.flush()
 
 
@@ -73,10 +76,17 @@ class _Run:
 
     def report(self, chunk_steps_done: int):
         done = self.runs_done * self.steps_per_run + self.chunk_runs * chunk_steps_done
-        self.reporter({"runs_done": self.runs_done, "runs_total": self.runs_total,
-                       "chunk_steps_done": int(chunk_steps_done), "steps_per_run": self.steps_per_run,
-                       "run_steps_done": int(done), "run_steps_total": self.runs_total * self.steps_per_run,
-                       "elapsed_s": time.perf_counter() - self.t0})
+        self.reporter(
+            {
+                "runs_done": self.runs_done,
+                "runs_total": self.runs_total,
+                "chunk_steps_done": int(chunk_steps_done),
+                "steps_per_run": self.steps_per_run,
+                "run_steps_done": int(done),
+                "run_steps_total": self.runs_total * self.steps_per_run,
+                "elapsed_s": time.perf_counter() - self.t0,
+            }
+        )
 
 
 class active:

@@ -5,6 +5,7 @@
 the gains as functions of time (so a tuner can vary the gains where a paper keeps them constant);
 :func:`mask` / :func:`mask_from` choose which intervals a tuner may change.
 """
+
 from __future__ import annotations
 
 from typing import Sequence

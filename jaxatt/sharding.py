@@ -29,13 +29,15 @@ Several hosts (``jax.distributed``): every process calls the same function with 
 are gathered to every process with ``jax.experimental.multihost_utils.process_allgather``. That path is
 written to the documented API but has not been run on more than one host here.
 """
+
 from __future__ import annotations
 
 from typing import Any, Callable, Optional, Sequence, Union
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec as P
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 
 __all__ = ["resolve_devices", "seed_mesh", "shard_runs", "to_host", "AXIS"]
 
@@ -69,7 +71,7 @@ def seed_mesh(devices: Devices = None) -> Optional[Mesh]:
     return Mesh(np.asarray(devs, dtype=object), (AXIS,))
 
 
-def shard_runs(fn: Callable, mesh: Optional[Mesh], *, out_specs: Any = P(AXIS), reduce: Optional[Callable] = None):
+def shard_runs(fn: Callable, mesh: Optional[Mesh], *, out_specs: Any = None, reduce: Optional[Callable] = None):
     """``fn(scenario, params, keys)`` with the runs (axis 0 of ``keys``) split over ``mesh``.
 
     ``out_specs``: partition specs of the outputs (default: every output runs-first, split over the runs).
@@ -77,6 +79,7 @@ def shard_runs(fn: Callable, mesh: Optional[Mesh], *, out_specs: Any = P(AXIS), 
     Returns ``fn`` unchanged when ``mesh`` is None. The wrapped function is not jitted (jit it, or call it
     inside a jitted function); its ``keys`` length must be a multiple of the device count.
     """
+    out_specs = P(AXIS) if out_specs is None else out_specs
     if mesh is None:
         return fn if reduce is None else (lambda *a: reduce(fn(*a)))
     body = fn if reduce is None else (lambda *a: reduce(fn(*a)))
@@ -89,8 +92,10 @@ def shard_runs(fn: Callable, mesh: Optional[Mesh], *, out_specs: Any = P(AXIS), 
 def check_batch(n_runs: int, mesh: Optional[Mesh]) -> None:
     """Raise if ``n_runs`` does not split evenly over ``mesh``."""
     if mesh is not None and n_runs % mesh.size:
-        raise ValueError(f"a batch of {n_runs} runs does not split over {mesh.size} devices: use a multiple of "
-                         f"{mesh.size} (or devices=1)")
+        raise ValueError(
+            f"a batch of {n_runs} runs does not split over {mesh.size} devices: use a multiple of "
+            f"{mesh.size} (or devices=1)"
+        )
 
 
 def to_host(tree):

@@ -12,6 +12,7 @@ Every function broadcasts over leading axes and is safe under ``jit``, ``vmap`` 
 angle 0 and angle pi use the "double where" trick so that no NaN reaches a gradient (Euler angles excepted at
 gimbal lock, where they are not defined).
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -20,10 +21,33 @@ import jax
 import jax.numpy as jnp
 
 __all__ = [
-    "skew", "vex", "mm", "mv", "exp", "log", "quat_to_matrix", "matrix_to_quat", "quat_multiply",
-    "quat_conjugate", "quat_canonical", "nearest_rotation", "polar_newton", "orthogonality_error",
-    "angle_error", "angle_of", "EulerZYX", "matrix_to_euler_zyx", "euler_zyx_to_matrix", "cross",
-    "det3", "cofactor", "wrap_angle", "euler_error_zyx", "triad", "unit", "quat_multiply_parts",
+    "skew",
+    "vex",
+    "mm",
+    "mv",
+    "exp",
+    "log",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_canonical",
+    "nearest_rotation",
+    "polar_newton",
+    "orthogonality_error",
+    "angle_error",
+    "angle_of",
+    "EulerZYX",
+    "matrix_to_euler_zyx",
+    "euler_zyx_to_matrix",
+    "cross",
+    "det3",
+    "cofactor",
+    "wrap_angle",
+    "euler_error_zyx",
+    "triad",
+    "unit",
+    "quat_multiply_parts",
 ]
 
 
@@ -52,9 +76,7 @@ def skew(x: jax.Array) -> jax.Array:
     """Skew-symmetric matrix S(x), shape (..., 3, 3), with S(x) y = x x y."""
     x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
     z = jnp.zeros_like(x0)
-    return jnp.stack(
-        [jnp.stack([z, -x2, x1], -1), jnp.stack([x2, z, -x0], -1), jnp.stack([-x1, x0, z], -1)], axis=-2
-    )
+    return jnp.stack([jnp.stack([z, -x2, x1], -1), jnp.stack([x2, z, -x0], -1), jnp.stack([-x1, x0, z], -1)], axis=-2)
 
 
 def vex(m: jax.Array) -> jax.Array:
@@ -174,10 +196,12 @@ def quat_multiply_parts(p: tuple, q: tuple) -> tuple:
     elementwise filters use (a tuple of arrays fuses better on CPU than one stacked array)."""
     pw, px, py, pz = p
     qw, qx, qy, qz = q
-    return (pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw)
+    return (
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    )
 
 
 def quat_conjugate(q: jax.Array) -> jax.Array:

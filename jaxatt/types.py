@@ -13,6 +13,7 @@ Conventions (stated once here, used everywhere):
 Alignment (one rule for every path, :mod:`jaxatt.engine`): T samples at t_0 ... t_{T-1} give T estimates; estimate
 0 is ``init``'s (at t_0), estimate k >= 1 is the state after the step over [t_{k-1}, t_k].
 """
+
 from __future__ import annotations
 
 from typing import Any, Callable, NamedTuple, Optional

@@ -14,6 +14,7 @@ closed after each cell (as the inline backend does), cell timings are printed, a
 notebook's ``RESULTS`` dict (key numbers) is written as JSON. Set ``JAXATT_NOTEBOOK_QUICK=1`` for the reduced
 mode and ``JAXATT_FIGURE_DIR`` for where figures go.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,9 +68,12 @@ def to_notebook(cells: list, stem: str) -> dict:
         if kind == "code":
             cell.update(execution_count=None, outputs=[])
         out.append(cell)
-    return {"cells": out, "metadata": {"kernelspec": KERNELSPEC,
-                                       "language_info": {"name": "python", "pygments_lexer": "ipython3"}},
-            "nbformat": 4, "nbformat_minor": 5}
+    return {
+        "cells": out,
+        "metadata": {"kernelspec": KERNELSPEC, "language_info": {"name": "python", "pygments_lexer": "ipython3"}},
+        "nbformat": 4,
+        "nbformat_minor": 5,
+    }
 
 
 def render(src: Path) -> str:

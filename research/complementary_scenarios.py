@@ -2,6 +2,7 @@
 and the excitation measures (Defs. 3.3/4.1, Lemmas 3.4/4.2) of each scenario; the excitation plot of the
 switching-reference scenario. Usage: ``python research/complementary_scenarios.py [--out DIR] [--duration S]``
 (default DIR research/results: complementary-scenarios-<host>-<UTC>.json and excitation-switching.png)."""
+
 from __future__ import annotations
 
 import argparse
@@ -43,10 +44,17 @@ def main():
         sel = (ang < 20.0) & (ang > 1e-6)
         rate = float(-np.polyfit(t[sel], np.log(np.deg2rad(ang[sel])), 1)[0]) if sel.sum() > 100 else float("nan")
         exc = analysis.excitation_of_scenario(scn, duration=cfg.duration, dt=cfg.dt, window=window)
-        rows.append({"scenario": name, "angle_0_deg": float(ang[0]), "angle_final_deg": float(ang[-1]),
-                     "decay_rate_per_s": rate, "lambda2_per_s_median": float(np.median(exc.lambda2) / window),
-                     "lambda_min_projector_per_s_median": float(np.median(exc.lambda_min_projector) / window),
-                     "condition_per_s_median": float(np.median(exc.condition) / window)})
+        rows.append(
+            {
+                "scenario": name,
+                "angle_0_deg": float(ang[0]),
+                "angle_final_deg": float(ang[-1]),
+                "decay_rate_per_s": rate,
+                "lambda2_per_s_median": float(np.median(exc.lambda2) / window),
+                "lambda_min_projector_per_s_median": float(np.median(exc.lambda_min_projector) / window),
+                "condition_per_s_median": float(np.median(exc.condition) / window),
+            }
+        )
         if name == "switching":
             import matplotlib
 
@@ -58,8 +66,12 @@ def main():
             out_dir = pathlib.Path(args.out) if args.out else RESULTS_DIR
             out_dir.mkdir(parents=True, exist_ok=True)
             fig.savefig(out_dir / "excitation-switching.png", dpi=110)
-    print_table(rows, list(rows[0]), title=f"complementary observer (gain {E.Config().gain} 1/s), noise-free, "
-                                           f"held-out scenarios; excitation over {window:g}-s windows")
+    print_table(
+        rows,
+        list(rows[0]),
+        title=f"complementary observer (gain {E.Config().gain} 1/s), noise-free, "
+        f"held-out scenarios; excitation over {window:g}-s windows",
+    )
     print(f"written {write_results('complementary-scenarios', {'rows': rows}, out_dir=args.out or RESULTS_DIR)}")
 
 

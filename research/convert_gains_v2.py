@@ -16,6 +16,7 @@ What it converted (once, for the redesign; kept to show how the shipped files we
 Usage: python research/convert_gains_v2.py [--study-dir research/results] [--robust] [--check-only]
 (the 0.1 originals of the three study files are kept in research/results/)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,9 +28,11 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "jaxatt" / "data" / "gains"
 
 #: 0.1 study file -> shipped name
-STUDY_FILES = {"gains-batista-ges-growing.json": "batista-ges-growing.json",
-               "gains-batista-so3.json": "batista-so3.json",
-               "gains-nlio-case1.json": "nlio-case1.json"}
+STUDY_FILES = {
+    "gains-batista-ges-growing.json": "batista-ges-growing.json",
+    "gains-batista-so3.json": "batista-so3.json",
+    "gains-nlio-case1.json": "nlio-case1.json",
+}
 ROBUST_FILES = ("robust_broad_all.json", "robust_broad_fold1.json", "robust_broad_fold2.json")
 
 
@@ -71,9 +74,15 @@ def convert_study(src: pathlib.Path, dst: pathlib.Path, check_only: bool = False
         settings = dict(old.get("tuning") or {})
         settings.update({"study": study.name, "config": config})
         extra = {"status": old.get("status", "done"), "settings": settings}
-        for k_old, k_new in (("best_step", "best_step"), ("best_val_loss", "best_loss"),
-                             ("start_val_loss", "start_loss"), ("history", "history"), ("notes", "notes"),
-                             ("family", "family"), ("environment", "provenance")):
+        for k_old, k_new in (
+            ("best_step", "best_step"),
+            ("best_val_loss", "best_loss"),
+            ("start_val_loss", "start_loss"),
+            ("history", "history"),
+            ("notes", "notes"),
+            ("family", "family"),
+            ("environment", "provenance"),
+        ):
             if k_old in old:
                 extra[k_new] = old[k_old]
         if "start_gains" in old:

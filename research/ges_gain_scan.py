@@ -7,6 +7,7 @@ gains' steady error. Writes research/results/ges-gain-scan-<host>-<UTC>.json (``
 
 Usage: python research/ges_gain_scan.py [--runs 32] [--duration S]   (--duration < 3600 s: a reduced check)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -59,20 +60,41 @@ def main(argv=None) -> int:
     s = studies.get("batista-ges").setup(**({} if args.duration is None else {"duration": args.duration}))
     rows, base = [], None
     for name, sc in SCALINGS.items():
-        r = montecarlo.monte_carlo(s.scenario, s.observer, scaled(s.params, sc), runs=args.runs, duration=s.duration,
-                                   dt=s.dt, seed=args.seed, errors_fn=s.errors_fn, window_start=s.window_start,
-                                   hold=s.hold, chunk=args.runs, trace_every=500, trace_fn=_trace)
+        r = montecarlo.monte_carlo(
+            s.scenario,
+            s.observer,
+            scaled(s.params, sc),
+            runs=args.runs,
+            duration=s.duration,
+            dt=s.dt,
+            seed=args.seed,
+            errors_fn=s.errors_fn,
+            window_start=s.window_start,
+            hold=s.hold,
+            chunk=args.runs,
+            trace_every=500,
+            trace_fn=_trace,
+        )
         t, c = r.traces["t"][0], r.traces["angle_deg"].mean(0)
         m = float(r.per_run["mean_angle_error_deg"].mean())
         base = m if base is None else base
-        row = {"name": name, "scaling": sc, "steady_mean_angle_deg": m, "change": m / base - 1.0,
-               "settle_10pct_s": settling_time(t, c, 1.1 * base, 60.0),
-               "curve_deg": {str(x): float(c[min(np.searchsorted(t, x), len(t) - 1)])
-                             for x in (1200, 1800, 2400, 3000, 3590)}}
+        row = {
+            "name": name,
+            "scaling": sc,
+            "steady_mean_angle_deg": m,
+            "change": m / base - 1.0,
+            "settle_10pct_s": settling_time(t, c, 1.1 * base, 60.0),
+            "curve_deg": {
+                str(x): float(c[min(np.searchsorted(t, x), len(t) - 1)]) for x in (1200, 1800, 2400, 3000, 3590)
+            },
+        }
         rows.append(row)
-        print(f"{name:32s} steady {m:.4f} deg ({100 * row['change']:+.1f} %), settles (10 %) at "
-              f"{row['settle_10pct_s']} s; curve at 1200/1800/2400/3000/3590 s: "
-              + " ".join(f"{v:.3g}" for v in row["curve_deg"].values()), flush=True)
+        print(
+            f"{name:32s} steady {m:.4f} deg ({100 * row['change']:+.1f} %), settles (10 %) at "
+            f"{row['settle_10pct_s']} s; curve at 1200/1800/2400/3000/3590 s: "
+            + " ".join(f"{v:.3g}" for v in row["curve_deg"].values()),
+            flush=True,
+        )
     path = C.write_results("ges-gain-scan", {"settings": vars(args), "rows": rows}, out_dir=args.out, meta=meta)
     print(f"results written to {path}")
     return 0

@@ -14,6 +14,7 @@ Writes research/results/ges-gradient-noise-<host>-<UTC>.json (``--out``).
 Usage: python research/ges_gradient_noise.py [--runs 16] [--start G.json] [--duration S]
 (--duration < 3600 s: a reduced check; the steady window then starts at 2/3 of it)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -59,8 +60,14 @@ def main(argv=None) -> int:
     th0 = bound.init()
     # the fitter's loss (jaxatt.fitting.losses): mean angle error (deg) over the steady window of each run
     ss, se = s.loss_windows["steady"]
-    loss_fn = losses.make_loss_fn(s.observer, duration=s.duration, dt=s.dt, spec=losses.loss_spec(
-        "angle", steady_start=ss, steady_end=se), hold=s.hold, init_params=s.init_params)
+    loss_fn = losses.make_loss_fn(
+        s.observer,
+        duration=s.duration,
+        dt=s.dt,
+        spec=losses.loss_spec("angle", steady_start=ss, steady_end=se),
+        hold=s.hold,
+        init_params=s.init_params,
+    )
 
     def obj(th, keys):
         return loss_fn(s.scenario, bound.constrain(th), keys)
@@ -78,9 +85,11 @@ def main(argv=None) -> int:
         losses.append(float(loss))
         print(f"run {k}: loss {float(loss):.4f} deg, {time.perf_counter() - t0:.0f} s", flush=True)
     G = np.stack(rows)
-    names = ([f"alpha1[{i}] t>={starts[i]:g}" for i in np.nonzero(masks["alpha1"])[0]]
-             + [f"alpha2[{i}] t>={starts[i]:g}" for i in np.nonzero(masks["alpha2"])[0]]
-             + [f"gain_z chol diag {i}" for i in range(9)])
+    names = (
+        [f"alpha1[{i}] t>={starts[i]:g}" for i in np.nonzero(masks["alpha1"])[0]]
+        + [f"alpha2[{i}] t>={starts[i]:g}" for i in np.nonzero(masks["alpha2"])[0]]
+        + [f"gain_z chol diag {i}" for i in range(9)]
+    )
     mean, std = G.mean(0), G.std(0, ddof=1)
     snr = {b: np.abs(mean) / (std / np.sqrt(b)) for b in (8, 32, 64)}
     print(f"\n{'component':26s} {'mean':>10s} {'std':>10s} {'SNR(8)':>7s} {'SNR(64)':>7s}")
@@ -88,11 +97,22 @@ def main(argv=None) -> int:
         print(f"{n:26s} {mean[i]:10.3g} {std[i]:10.3g} {snr[8][i]:7.2f} {snr[64][i]:7.2f}")
     frac = {b: float(np.mean(v < 1.0)) for b, v in snr.items()}
     print("fraction of components with SNR < 1: " + ", ".join(f"batch {b}: {100 * v:.0f} %" for b, v in frac.items()))
-    path = C.write_results("ges-gradient-noise", {
-        "settings": vars(args), "refined_times": REFINED_TIMES, "components": names, "per_run_loss_deg": losses,
-        "mean": mean.tolist(), "std": std.tolist(), "snr": {str(b): v.tolist() for b, v in snr.items()},
-        "fraction_snr_below_1": {str(b): v for b, v in frac.items()}, "wall_s": time.perf_counter() - t0},
-        out_dir=args.out, meta=meta)
+    path = C.write_results(
+        "ges-gradient-noise",
+        {
+            "settings": vars(args),
+            "refined_times": REFINED_TIMES,
+            "components": names,
+            "per_run_loss_deg": losses,
+            "mean": mean.tolist(),
+            "std": std.tolist(),
+            "snr": {str(b): v.tolist() for b, v in snr.items()},
+            "fraction_snr_below_1": {str(b): v for b, v in frac.items()},
+            "wall_s": time.perf_counter() - t0,
+        },
+        out_dir=args.out,
+        meta=meta,
+    )
     print(f"results written to {path}")
     return 0
 

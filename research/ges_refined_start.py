@@ -35,6 +35,7 @@ Usage: python research/ges_refined_start.py [--search] [--runs 32] [--family JSO
    then: python research/tune_acceptance.py --experiment batista-ges --gains G.json   (held out)
    or:   python research/tune_acceptance.py --experiment batista-ges --start G.json ...   (tune)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -84,8 +85,11 @@ def family_transforms(switch_times, grow_from=900.0):
     power = np.where(late, np.log(np.maximum(starts, grow_from) / grow_from), 0.0)
     b1 = np.stack([~late, late], 1).astype(float)
     b2 = np.stack([~late, late, power], 1).astype(float)
-    return {"alpha1": P.LogBasis(b1), "alpha2": P.LogBasis(b2),
-            "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1))))}
+    return {
+        "alpha1": P.LogBasis(b1),
+        "alpha2": P.LogBasis(b2),
+        "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1)))),
+    }
 
 
 def start_params(p):
@@ -98,23 +102,46 @@ def _steady(s, params, runs):
 
     from jaxatt import montecarlo
 
-    r = montecarlo.monte_carlo(s.scenario, s.observer, params, runs=runs, duration=s.duration, dt=s.dt, seed=0,
-                               errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold, chunk=runs,
-                               init_params=s.init_params)
+    r = montecarlo.monte_carlo(
+        s.scenario,
+        s.observer,
+        params,
+        runs=runs,
+        duration=s.duration,
+        dt=s.dt,
+        seed=0,
+        errors_fn=s.errors_fn,
+        window_start=s.window_start,
+        hold=s.hold,
+        chunk=runs,
+        init_params=s.init_params,
+    )
     return np.asarray(r.per_run["mean_angle_error_deg"], float)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=int, default=32, help="training runs (seed 0, runs 0 ... runs-1); 0: no "
-                                                         "measurement (writes the CHOSEN gains only)")
+    ap.add_argument(
+        "--runs",
+        type=int,
+        default=32,
+        help="training runs (seed 0, runs 0 ... runs-1); 0: no measurement (writes the CHOSEN gains only)",
+    )
     ap.add_argument("--search", action="store_true", help="evaluate GRID on the training runs, keep the best")
     ap.add_argument("--first-start", action="store_true", help="write the first start (FIRST_START) instead")
-    ap.add_argument("--family", default=None, metavar="JSON",
-                    help='override some of the chosen values, e.g. \'{"k": 1.0, "early_scale": 1.0}\'')
-    ap.add_argument("--noise", choices=("both", "gyro", "mag"), default="both",
-                    help="simulate only the gyro or only the magnetometer noise (to see which one an error comes "
-                         "from); no gains file is written")
+    ap.add_argument(
+        "--family",
+        default=None,
+        metavar="JSON",
+        help='override some of the chosen values, e.g. \'{"k": 1.0, "early_scale": 1.0}\'',
+    )
+    ap.add_argument(
+        "--noise",
+        choices=("both", "gyro", "mag"),
+        default="both",
+        help="simulate only the gyro or only the magnetometer noise (to see which one an error comes "
+        "from); no gains file is written",
+    )
     ap.add_argument("--out", default=None, help="write the family's gains file here (not with --noise gyro|mag)")
     ap.add_argument("--results", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
@@ -146,17 +173,25 @@ def main(argv=None) -> int:
     if args.runs > 0:
         t0 = time.perf_counter()
         paper = _steady(s, s.params, args.runs)
-        print(f"paper gains: steady-state mean angle error (t >= {s.window_start:g} s, training runs 0-"
-              f"{args.runs - 1} of seed 0) {paper.mean():.4f} deg  [{time.perf_counter() - t0:.0f} s]", flush=True)
+        print(
+            f"paper gains: steady-state mean angle error (t >= {s.window_start:g} s, training runs 0-"
+            f"{args.runs - 1} of seed 0) {paper.mean():.4f} deg  [{time.perf_counter() - t0:.0f} s]",
+            flush=True,
+        )
     if args.search:
         fixed = {"grow_from": CHOSEN["grow_from"], "late_alpha1_scale": CHOSEN["late_alpha1_scale"]}
         for values in itertools.product(*GRID.values()):
             fam = dict(zip(GRID.keys(), values), **fixed)
             v = _steady(s, family_params(s.params, **fam), args.runs)
             d = v - paper
-            rows.append({"family": fam, "steady_mean_angle_deg": float(v.mean()),
-                         "change": float(v.mean() / paper.mean() - 1.0),
-                         "paired_stderr_deg": float(d.std(ddof=1) / np.sqrt(len(d)))})
+            rows.append(
+                {
+                    "family": fam,
+                    "steady_mean_angle_deg": float(v.mean()),
+                    "change": float(v.mean() / paper.mean() - 1.0),
+                    "paired_stderr_deg": float(d.std(ddof=1) / np.sqrt(len(d))),
+                }
+            )
             print(f"  {fam}: {v.mean():.4f} deg ({100 * rows[-1]['change']:+.1f} %)", flush=True)
         chosen = min(rows, key=lambda r: r["steady_mean_angle_deg"])["family"]
         print(f"best on the training runs: {chosen}")
@@ -165,24 +200,48 @@ def main(argv=None) -> int:
     if not write_gains:
         args.out = None  # a noise study: no gains file
     else:
-        gainsfile.write(args.out, observer="batista-ges", params=q, gains=registry.get("batista-ges").gains,
-                        study="batista-ges", status="done", settings={"study": "batista-ges",
-                                                                      "config": config_dict(s.config)},
-                        notes=[f"growing-memory family of research/ges_refined_start.py at {chosen}; chosen on "
-                               "training runs of seed 0 only"], family=chosen)
+        gainsfile.write(
+            args.out,
+            observer="batista-ges",
+            params=q,
+            gains=registry.get("batista-ges").gains,
+            study="batista-ges",
+            status="done",
+            settings={"study": "batista-ges", "config": config_dict(s.config)},
+            notes=[
+                f"growing-memory family of research/ges_refined_start.py at {chosen}; chosen on "
+                "training runs of seed 0 only"
+            ],
+            family=chosen,
+        )
         print(f"gains written to {args.out}")
     if args.runs <= 0:
         return 0
     v = _steady(s, q, args.runs)
     change = float(v.mean() / paper.mean() - 1.0)
     d = v - paper
-    print(f"family {chosen} ({args.noise} noise): {v.mean():.4f} deg vs paper {paper.mean():.4f} deg -> {100 * change:+.1f} % "
-          f"(paired {d.mean():+.4f} +- {d.std(ddof=1) / np.sqrt(len(d)):.4f} deg)")
-    path = C.write_results("ges-refined-start", {
-        "settings": vars(args), "grid": GRID if args.search else None, "search": rows, "chosen": chosen,
-        "paper_steady_mean_angle_deg": float(paper.mean()), "chosen_steady_mean_angle_deg": float(v.mean()),
-        "change": change, "per_run_paper": paper.tolist(), "per_run_chosen": v.tolist(), "gains_path": args.out},
-        out_dir=args.results, meta=meta)
+    print(
+        f"family {chosen} ({args.noise} noise): {v.mean():.4f} deg vs paper {paper.mean():.4f} deg -> "
+        f"{100 * change:+.1f} % "
+        f"(paired {d.mean():+.4f} +- {d.std(ddof=1) / np.sqrt(len(d)):.4f} deg)"
+    )
+    path = C.write_results(
+        "ges-refined-start",
+        {
+            "settings": vars(args),
+            "grid": GRID if args.search else None,
+            "search": rows,
+            "chosen": chosen,
+            "paper_steady_mean_angle_deg": float(paper.mean()),
+            "chosen_steady_mean_angle_deg": float(v.mean()),
+            "change": change,
+            "per_run_paper": paper.tolist(),
+            "per_run_chosen": v.tolist(),
+            "gains_path": args.out,
+        },
+        out_dir=args.results,
+        meta=meta,
+    )
     print(f"results written to {path}")
     return 0
 

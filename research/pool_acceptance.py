@@ -10,6 +10,7 @@ error, the same moving-average rule as tune_acceptance.py).
 Usage: python research/pool_acceptance.py research/results/tune_acceptance-batista-ges-*.json ...
 Writes research/results/pool-acceptance-<host>-<UTC>.json (``--out``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,14 +45,22 @@ def main(argv=None) -> int:
         if gains is not None and g != gains:
             raise SystemExit(f"{f}: different gains from the first file; pool evaluations of the same gains only")
         gains = g
-        rows.append({"file": f, "eval_seed": sm["eval_seed"], "runs": sm["eval_runs"],
-                     "paper": sm["steady_mean_angle_error_deg"]["paper_gains"],
-                     "tuned": sm["steady_mean_angle_error_deg"]["tuned_gains"],
-                     "diff": sm["paired_difference_deg"]["mean"], "diff_se": sm["paired_difference_deg"]["stderr"],
-                     "t": np.asarray(d["curves"]["t_s"], float),
-                     "curve_paper": np.asarray(d["curves"]["paper_mean_angle_deg"], float),
-                     "curve_tuned": np.asarray(d["curves"]["tuned_mean_angle_deg"], float),
-                     "gains_path": d.get("gains_path"), "smooth_s": st.get("smooth_s", args.smooth_s)})
+        rows.append(
+            {
+                "file": f,
+                "eval_seed": sm["eval_seed"],
+                "runs": sm["eval_runs"],
+                "paper": sm["steady_mean_angle_error_deg"]["paper_gains"],
+                "tuned": sm["steady_mean_angle_error_deg"]["tuned_gains"],
+                "diff": sm["paired_difference_deg"]["mean"],
+                "diff_se": sm["paired_difference_deg"]["stderr"],
+                "t": np.asarray(d["curves"]["t_s"], float),
+                "curve_paper": np.asarray(d["curves"]["paper_mean_angle_deg"], float),
+                "curve_tuned": np.asarray(d["curves"]["tuned_mean_angle_deg"], float),
+                "gains_path": d.get("gains_path"),
+                "smooth_s": st.get("smooth_s", args.smooth_s),
+            }
+        )
     n = np.array([r["runs"] for r in rows], float)
     big_n = n.sum()
     paper = float(np.sum(n * [r["paper"] for r in rows]) / big_n)
@@ -66,23 +75,40 @@ def main(argv=None) -> int:
     tp, tt = settling_time(t, cp, target, args.smooth_s), settling_time(t, ct, target, args.smooth_s)
     speedup = (tp / tt) if (tp and tt) else None
     for r in rows:
-        print(f"seed {r['eval_seed']}: {r['runs']} runs, paper {r['paper']:.4f} deg, tuned {r['tuned']:.4f} deg "
-              f"({100 * (r['tuned'] / r['paper'] - 1):+.1f} %, paired {r['diff']:+.4f} +- {r['diff_se']:.4f})")
-    print(f"pooled over {int(big_n)} held-out runs: paper {paper:.4f} deg, tuned {tuned:.4f} deg -> "
-          f"{100 * improvement:.1f} % lower (paired {diff:+.4f} +- {diff_se:.4f} deg, i.e. "
-          f"{100 * -diff / paper:.1f} +- {100 * diff_se / paper:.1f} %)")
-    print(f"criterion A (>= 20 % lower): {'MET' if improvement >= 0.20 else 'not met'}; criterion B on the pooled "
-          f"curves (10 % band, {target:.4f} deg): paper {tp} s, tuned {tt} s"
-          + (f", {speedup:.2f}x" if speedup else "") + f" -> {'MET' if speedup and speedup >= 2 else 'not met'}")
+        print(
+            f"seed {r['eval_seed']}: {r['runs']} runs, paper {r['paper']:.4f} deg, tuned {r['tuned']:.4f} deg "
+            f"({100 * (r['tuned'] / r['paper'] - 1):+.1f} %, paired {r['diff']:+.4f} +- {r['diff_se']:.4f})"
+        )
+    print(
+        f"pooled over {int(big_n)} held-out runs: paper {paper:.4f} deg, tuned {tuned:.4f} deg -> "
+        f"{100 * improvement:.1f} % lower (paired {diff:+.4f} +- {diff_se:.4f} deg, i.e. "
+        f"{100 * -diff / paper:.1f} +- {100 * diff_se / paper:.1f} %)"
+    )
+    print(
+        f"criterion A (>= 20 % lower): {'MET' if improvement >= 0.20 else 'not met'}; criterion B on the pooled "
+        f"curves (10 % band, {target:.4f} deg): paper {tp} s, tuned {tt} s"
+        + (f", {speedup:.2f}x" if speedup else "")
+        + f" -> {'MET' if speedup and speedup >= 2 else 'not met'}"
+    )
     meta = C.metadata(sys.argv if argv is None else ["pool_acceptance.py"] + list(argv))
-    data = {"files": [r["file"] for r in rows],
-            "per_file": [{k: v for k, v in r.items() if k not in ("t", "curve_paper", "curve_tuned")} for r in rows],
-            "pooled": {"runs": int(big_n), "paper_steady_deg": paper, "tuned_steady_deg": tuned,
-                       "improvement": improvement, "paired_difference_deg": diff, "paired_stderr_deg": diff_se,
-                       "criterion_A": bool(improvement >= 0.20), "settling_10pct_paper_s": tp,
-                       "settling_10pct_tuned_s": tt, "speedup": speedup,
-                       "criterion_B": bool(speedup is not None and speedup >= 2.0)},
-            "curves": {"t_s": t.tolist(), "paper_mean_angle_deg": cp.tolist(), "tuned_mean_angle_deg": ct.tolist()}}
+    data = {
+        "files": [r["file"] for r in rows],
+        "per_file": [{k: v for k, v in r.items() if k not in ("t", "curve_paper", "curve_tuned")} for r in rows],
+        "pooled": {
+            "runs": int(big_n),
+            "paper_steady_deg": paper,
+            "tuned_steady_deg": tuned,
+            "improvement": improvement,
+            "paired_difference_deg": diff,
+            "paired_stderr_deg": diff_se,
+            "criterion_A": bool(improvement >= 0.20),
+            "settling_10pct_paper_s": tp,
+            "settling_10pct_tuned_s": tt,
+            "speedup": speedup,
+            "criterion_B": bool(speedup is not None and speedup >= 2.0),
+        },
+        "curves": {"t_s": t.tolist(), "paper_mean_angle_deg": cp.tolist(), "tuned_mean_angle_deg": ct.tolist()},
+    }
     path = C.write_results("pool-acceptance", data, args.out, meta)
     print(f"results written to {path}")
     return 0

@@ -1,5 +1,6 @@
 """Where the tests find the BROAD trials (../shared/data/broad), and the rule for a missing data set: skip on a
 developer's machine, fail in CI (CI=true), which must have it."""
+
 import os
 from pathlib import Path
 

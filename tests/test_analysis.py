@@ -1,5 +1,6 @@
 """Excitation measures of Trumpf et al. (2012) (jaxatt.analysis): agreement with an independent brute-force
 computation, the paper's lemmas as properties, closed forms on the scenarios, inputs from logs, errors."""
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -9,8 +10,8 @@ import pytest  # noqa: E402
 
 from jaxatt import analysis as A  # noqa: E402
 from jaxatt.observers import complementary as C  # noqa: E402
-from jaxatt.types import ImuSample  # noqa: E402
 from jaxatt.sim import references as S  # noqa: E402
+from jaxatt.types import ImuSample  # noqa: E402
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -92,8 +93,9 @@ def random_case(seed=0, T=45, n1=2, n2=1):
 def test_matches_brute_force(rule):
     t, ar, b, br, g, gains = random_case()
     for window in (0.5, 1.3):
-        got = A.excitation(t, window=window, ref_inertial=ar, inertial_meas=b, ref_body=br, gyr=g, gains=gains,
-                           rule=rule)
+        got = A.excitation(
+            t, window=window, ref_inertial=ar, inertial_meas=b, ref_body=br, gyr=g, gains=gains, rule=rule
+        )
         ref = brute_force(t, window, ar, b, br, g, gains, rule)
         assert got.t_start.shape == ref.t_start.shape and len(got.t_start) > 10
         for name, x, y in zip(A.Excitation._fields, got, ref):
@@ -190,8 +192,9 @@ def test_compatible_term():
     assert np.min(ex.lambda2) > 0.1 * 5.0
     # b̊(t) = Rx(-w t) e3, b = Rx(w t) b̊ = e3 constant
     br = np.stack([np.zeros_like(t), np.sin(w * t), np.cos(w * t)], -1)[:, None]
-    ex = A.excitation(t, window=5.0, inertial_meas=np.broadcast_to(e3, (len(t), 1, 3)), ref_body=br, gyr=gyr,
-                      stride=100)
+    ex = A.excitation(
+        t, window=5.0, inertial_meas=np.broadcast_to(e3, (len(t), 1, 3)), ref_body=br, gyr=gyr, stride=100
+    )
     assert np.max(ex.compatible_term) < 1e-4 and np.max(ex.lambda2) < 1e-12
 
 

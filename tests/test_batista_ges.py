@@ -1,5 +1,6 @@
 """Properties of the GES Earth-velocity observer that follow from batista2019-ges (Theorems 1-3, Prop. 1,
 Appendices A-D), agreement of independent computations, and the published Monte Carlo numbers."""
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -9,9 +10,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from jaxatt import montecarlo, so3  # noqa: E402
-from jaxatt.studies import batista_ges as E  # noqa: E402
 from jaxatt.observers import batista_ges as ges  # noqa: E402
 from jaxatt.sim import earth  # noqa: E402
+from jaxatt.studies import batista_ges as E  # noqa: E402
 
 REF = np.array(earth.LISBON_FIELD_NED_NT)
 WE = np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG))
@@ -71,8 +72,9 @@ def test_paper_gain_is_literal_q():
 def fast_params(**kw):
     """Constant gains (any alpha > 0 and Q > 0 are GES): fast enough for short test runs."""
     p = ges.default_params(REF, WE)
-    return p._replace(switch_times=jnp.zeros((0,)), alpha1=jnp.array([5.0]), alpha2=jnp.array([1.0]),
-                      gain_z=0.3 * jnp.eye(9), **kw)
+    return p._replace(
+        switch_times=jnp.zeros((0,)), alpha1=jnp.array([5.0]), alpha2=jnp.array([1.0]), gain_z=0.3 * jnp.eye(9), **kw
+    )
 
 
 @pytest.fixture(scope="module")
@@ -96,15 +98,25 @@ def test_global_convergence_from_any_initial_estimate(noise_free_log):
     samples, truth = noise_free_log
     rng = np.random.default_rng(7)
     r_true0 = np.eye(3)
-    r0s = [rng.normal(size=(3, 3)) * 5.0,  # far from SO(3)
-           r_true0 @ np.asarray(so3.exp(jnp.asarray(np.pi * np.array([0.0, 0.6, 0.8])))),  # 180 deg away
-           np.diag([-1.0, -1.0, 1.0]),  # the paper's
-           -np.eye(3) * 3.0,  # det < 0, not a rotation
-           np.zeros((3, 3))]
+    r0s = [
+        rng.normal(size=(3, 3)) * 5.0,  # far from SO(3)
+        r_true0 @ np.asarray(so3.exp(jnp.asarray(np.pi * np.array([0.0, 0.6, 0.8])))),  # 180 deg away
+        np.diag([-1.0, -1.0, 1.0]),  # the paper's
+        -np.eye(3) * 3.0,  # det < 0, not a rotation
+        np.zeros((3, 3)),
+    ]
     base = fast_params()
-    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[
-        base._replace(r_hat_0=jnp.asarray(r0), x1_0=jnp.asarray(rng.normal(size=3) * 1e5),
-                      x2_0=jnp.asarray(rng.normal(size=3) * 1e3)) for r0 in r0s])
+    batch = jax.tree_util.tree_map(
+        lambda *a: jnp.stack(a),
+        *[
+            base._replace(
+                r_hat_0=jnp.asarray(r0),
+                x1_0=jnp.asarray(rng.normal(size=3) * 1e5),
+                x2_0=jnp.asarray(rng.normal(size=3) * 1e3),
+            )
+            for r0 in r0s
+        ],
+    )
     out = _batched_run(ges.make_observer(x1_init="params"), batch, samples)
     tr = jax.tree_util.tree_map(np.asarray, truth)  # truth k at the time of estimate k
     x1_err = np.linalg.norm(np.asarray(out.x1)[:, -1] - tr.ref_body[-1], axis=-1)
@@ -177,9 +189,18 @@ def test_fused_simulation_equals_running_the_simulated_log():
     cfg = E.Config()
     samples, _ = montecarlo.simulate_log(E.scenario(cfg), duration=20.0, dt=0.01, seed=3, run_index=2)
     out = montecarlo.run(E.observer(cfg), E.params(cfg), samples, 0.01)
-    _, trace, _ = montecarlo.simulate(E.scenario(cfg), E.observer(cfg), E.params(cfg), duration=20.0, dt=0.01,
-                                      seed=3, run_index=2, errors_fn=E.errors, trace_every=1,
-                                      trace_fn=lambda t, o, e, a: {"x1": o.x1, "r": o.r, "x2": o.x2})
+    _, trace, _ = montecarlo.simulate(
+        E.scenario(cfg),
+        E.observer(cfg),
+        E.params(cfg),
+        duration=20.0,
+        dt=0.01,
+        seed=3,
+        run_index=2,
+        errors_fn=E.errors,
+        trace_every=1,
+        trace_fn=lambda t, o, e, a: {"x1": o.x1, "r": o.r, "x2": o.x2},
+    )
     np.testing.assert_allclose(trace["x1"], np.asarray(out.x1), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(trace["x2"], np.asarray(out.x2), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(trace["r"], np.asarray(out.r), atol=1e-12)
@@ -229,8 +250,9 @@ def test_bad_input_gets_clear_errors(noise_free_log):
 @pytest.fixture(scope="module")
 def section4_runs():
     cfg = E.Config()
-    kw = dict(runs=8, chunk=8, duration=cfg.duration, dt=cfg.dt, seed=0, errors_fn=E.errors,
-              window_start=cfg.window_start)
+    kw = dict(
+        runs=8, chunk=8, duration=cfg.duration, dt=cfg.dt, seed=0, errors_fn=E.errors, window_start=cfg.window_start
+    )
     r64 = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), dtype=jnp.float64, **kw)
     r32 = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), dtype=jnp.float32, **kw)
     return r64.per_run, r32.per_run

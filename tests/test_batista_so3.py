@@ -1,13 +1,14 @@
 """Properties of the SO(3) cascade observer (batista2019-so3) that follow from the paper's theorems."""
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxatt import montecarlo, so3
-from jaxatt.studies import batista_so3 as E
 from jaxatt.observers import batista_so3 as obs
 from jaxatt.sim import earth
+from jaxatt.studies import batista_so3 as E
 
 M_NAV = np.asarray(earth.LISBON_FIELD_NED_NT)
 W_NAV = np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG))
@@ -20,8 +21,15 @@ def fast_params(r_hat_0, *, a1=1.0, a2=0.05, a0=0.1, a3=0.5, a4=0.5, v_hat_0=(0.
     """Constant gains given as rates (alpha1 |I_m|^2, alpha2, alpha0 |I_m|^2, alpha3 |I_m|^2, alpha4 |I_v|^2)."""
     p = obs.default_params(M_NAV, W_NAV, r_hat_0=np.asarray(r_hat_0))
     f = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
-    return p._replace(switch_times=jnp.zeros((0,)), alpha1=f([a1 / MM]), alpha2=f([a2]), alpha0=f(a0 / MM),
-                      alpha3=f(a3 / MM), alpha4=f(a4 / IVV), v_hat_0=f(v_hat_0))
+    return p._replace(
+        switch_times=jnp.zeros((0,)),
+        alpha1=f([a1 / MM]),
+        alpha2=f([a2]),
+        alpha0=f(a0 / MM),
+        alpha3=f(a3 / MM),
+        alpha4=f(a4 / IVV),
+        v_hat_0=f(v_hat_0),
+    )
 
 
 def log(duration, dt=0.01, noise=0.0, seed=0, trajectory="slow"):
@@ -71,7 +79,9 @@ def test_lyapunov_of_theorem1_never_increases_and_errors_vanish():
     out = montecarlo.run(obs.make_observer(m_init="params"), p, samples, dt=0.01, hold="linear")
     tr, m_err, v_err, _ = truth_errors(truth, out)
     V = np.asarray(obs.lyapunov(p, jnp.asarray(tr.t), jnp.asarray(m_err), jnp.asarray(v_err)))
-    V0 = 0.5 * np.sum((m0 - m_hat_0) ** 2) + 0.5 / MM / 0.05 * np.sum((np.cross(m0, np.cross(m0, np.asarray(truth.earth_rate_body[0]))) - np.asarray(p.v_hat_0)) ** 2)
+    V0 = 0.5 * np.sum((m0 - m_hat_0) ** 2) + 0.5 / MM / 0.05 * np.sum(
+        (np.cross(m0, np.cross(m0, np.asarray(truth.earth_rate_body[0]))) - np.asarray(p.v_hat_0)) ** 2
+    )
     np.testing.assert_allclose(V[0], V0, rtol=1e-12)  # estimate 0: the initial estimate
     assert V[1] <= V0 * (1 + 1e-9)  # V after the first step
     assert np.max(np.diff(V)) <= 1e-11 * V[1]  # early steps decrease V by ~1e-2 V[1] (the first one included)
@@ -100,7 +110,9 @@ def test_attitude_converges_from_179_deg_and_random_errors_below_180():
     assert max(ang0) > 178.0
     ang1 = np.rad2deg(np.asarray(jax.vmap(so3.angle_error)(jnp.broadcast_to(r_true[1], (len(ps), 3, 3)), out.r[:, 1])))
     assert np.max(ang1) > 178.0  # (after the first step)
-    final = np.rad2deg(np.asarray(jax.vmap(so3.angle_error)(jnp.broadcast_to(r_true[-1], (len(ps), 3, 3)), out.r[:, -1])))
+    final = np.rad2deg(
+        np.asarray(jax.vmap(so3.angle_error)(jnp.broadcast_to(r_true[-1], (len(ps), 3, 3)), out.r[:, -1]))
+    )
     # every start ends on the same trajectory (the residual is the O(dt^2) floor of interpolated inputs)
     assert np.all(final < 3e-3), final
     assert np.ptp(final) < 1e-6, final
@@ -108,8 +120,9 @@ def test_attitude_converges_from_179_deg_and_random_errors_below_180():
 
 def test_local_decay_rate_matches_slowest_eigenvalue_of_theorem3_matrix():
     gains = dict(a1=1.0, a2=0.05, a0=0.1, a3=0.5, a4=0.5)
-    A = obs.linearization(M_NAV, W_NAV, gains["a0"] / MM, gains["a1"] / MM, gains["a2"], gains["a3"] / MM,
-                          gains["a4"] / IVV)
+    A = obs.linearization(
+        M_NAV, W_NAV, gains["a0"] / MM, gains["a1"] / MM, gains["a2"], gains["a3"] / MM, gains["a4"] / IVV
+    )
     slowest = np.max(np.linalg.eigvals(A).real)
     assert slowest < 0  # Theorem 3: Hurwitz
     samples, truth = log(160.0)
@@ -117,8 +130,10 @@ def test_local_decay_rate_matches_slowest_eigenvalue_of_theorem3_matrix():
     p = fast_params(r_small.T, **gains)  # R~(0) = R(0) R^(0)^T = r_small (R(0) = I)
     m0 = np.asarray(truth.ref_body[0])
     v0 = np.cross(m0, np.cross(m0, np.asarray(truth.earth_rate_body[0])))
-    p = p._replace(v_hat_0=jnp.asarray(v0 * (1 + 1e-3) + 2e-3 * np.linalg.norm(v0) * np.array([0.3, -0.5, 0.8])),
-                   m_hat_0=jnp.asarray(np.asarray(so3.exp(jnp.asarray([1e-3, 0.0, -1e-3]))) @ m0))
+    p = p._replace(
+        v_hat_0=jnp.asarray(v0 * (1 + 1e-3) + 2e-3 * np.linalg.norm(v0) * np.array([0.3, -0.5, 0.8])),
+        m_hat_0=jnp.asarray(np.asarray(so3.exp(jnp.asarray([1e-3, 0.0, -1e-3]))) @ m0),
+    )
     # Inputs at the RK4 stage times: with held samples a lag floor (|v~| ~ 20-100 nT^2/s) hides the decay.
     out = montecarlo.run(obs.make_observer(m_init="params"), p, samples, dt=0.01, hold="linear")
     tr, m_err, v_err, _ = truth_errors(truth, out)
@@ -141,7 +156,9 @@ def test_missing_samples_are_handled():
     gyr = np.asarray(samples.gyr).copy()
     mag[100:400] = np.nan
     gyr[500:520] = np.nan
-    out = montecarlo.run(obs.make_observer(), E.params(E.Config()), samples._replace(mag=jnp.asarray(mag), gyr=jnp.asarray(gyr)), dt=0.01)
+    out = montecarlo.run(
+        obs.make_observer(), E.params(E.Config()), samples._replace(mag=jnp.asarray(mag), gyr=jnp.asarray(gyr)), dt=0.01
+    )
     assert np.all(np.isfinite(np.asarray(out.r)))
     assert np.all(np.isfinite(np.asarray(out.v_hat)))
 
@@ -167,8 +184,18 @@ def test_section4_monte_carlo_matches_table2_with_8_runs():
     errors of the 8-run mean (Table 2's R~-I within 30 %: the paper does not say over which elements its 'mean of
     the standard deviations' runs)."""
     cfg = E.Config()
-    res = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), runs=8, chunk=8, duration=cfg.duration,
-                                 dt=cfg.dt, errors_fn=E.errors, window_start=cfg.window_start, seed=11)
+    res = montecarlo.monte_carlo(
+        E.scenario(cfg),
+        E.observer(cfg),
+        E.params(cfg),
+        runs=8,
+        chunk=8,
+        duration=cfg.duration,
+        dt=cfg.dt,
+        errors_fn=E.errors,
+        window_start=cfg.window_start,
+        seed=11,
+    )
     paper = E.PAPER["slow"]
     for key, tol in (("mean_angle_error_deg", 0.25), ("std_m", 0.25), ("std_v", 0.25), ("std_r_err_offdiag", 0.30)):
         v = np.asarray(res.per_run[key])

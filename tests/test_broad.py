@@ -2,6 +2,7 @@
 
 Data: BROAD (Laidig et al., Data 6(7), 2021, CC BY 4.0), a 20-trial subset in ../shared/data/broad.
 """
+
 import json
 import os
 import platform
@@ -14,13 +15,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from broad_data import DATA, PUBLISHED, need_data  # noqa: E402
 
 from jaxatt import engine, frames, montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.observers import mahony
 from jaxatt.types import ImuSample
-
-from broad_data import DATA, PUBLISHED, need_data  # noqa: E402
 
 
 def _q_nwu(t, truth, out):
@@ -33,13 +33,23 @@ def broad_protocol_quats(trials, kp, ki, dtype):
     ENU in float64. In jaxatt's alignment (T estimates, estimate 0 = init's, hold="next": estimate k uses sample k)
     that is the log with sample 0 duplicated, estimates 1 ... N. Every trial in one padded batch (one compile);
     returns the list of (N, 4) sensor-to-ENU estimates."""
-    dup = [tr._replace(samples=jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples),
-                       quat_true=np.concatenate([tr.quat_true[:1], tr.quat_true]),
-                       movement=np.concatenate([[False], tr.movement])) for tr in trials]
+    dup = [
+        tr._replace(
+            samples=jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples),
+            quat_true=np.concatenate([tr.quat_true[:1], tr.quat_true]),
+            movement=np.concatenate([[False], tr.movement]),
+        )
+        for tr in trials
+    ]
     padded = broad.pad_trials(dup)
     item = {**broad.batch_item(padded, dtype), "truth": None}
-    fn = engine.compiled(mahony.make_observer("broad"), engine.Recorded(padded.samples.t.shape[1] - 1),
-                         engine.records_of(_q_nwu, 1), hold="next", obs_dtype=jnp.dtype(dtype))
+    fn = engine.compiled(
+        mahony.make_observer("broad"),
+        engine.Recorded(padded.samples.t.shape[1] - 1),
+        engine.records_of(_q_nwu, 1),
+        hold="next",
+        obs_dtype=jnp.dtype(dtype),
+    )
     q_nwu = np.asarray(fn(None, mahony.default_params(kp, ki, dtype=dtype), item).records, np.float64)
     return [frames.change_frame(q_nwu[i, 1:n], "ENU", "NWU") for i, n in enumerate(padded.lengths)]
 
@@ -67,9 +77,13 @@ def qmul(a, b):
 def rot(q):
     """Rotation matrix of a (w, x, y, z) quaternion (numpy)."""
     w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def expm(phi):
@@ -183,8 +197,14 @@ def broad_quat_from_acc_mag(acc, mag):
     x_sq = (1 + r[0, 0] - r[1, 1] - r[2, 2]) / 4
     y_sq = (1 - r[0, 0] + r[1, 1] - r[2, 2]) / 4
     z_sq = (1 - r[0, 0] - r[1, 1] + r[2, 2]) / 4
-    return np.array([np.sqrt(w_sq), np.copysign(np.sqrt(x_sq), r[2, 1] - r[1, 2]),
-                     np.copysign(np.sqrt(y_sq), r[0, 2] - r[2, 0]), np.copysign(np.sqrt(z_sq), r[1, 0] - r[0, 1])])
+    return np.array(
+        [
+            np.sqrt(w_sq),
+            np.copysign(np.sqrt(x_sq), r[2, 1] - r[1, 2]),
+            np.copysign(np.sqrt(y_sq), r[0, 2] - r[2, 0]),
+            np.copysign(np.sqrt(z_sq), r[1, 0] - r[0, 1]),
+        ]
+    )
 
 
 def mahony_step_matrices(q, xi, gyr, acc, mag, kp, ki, dt):
@@ -207,8 +227,9 @@ def mahony_step_matrices(q, xi, gyr, acc, mag, kp, ki, dt):
 
 
 def sample(t, g, a, m):
-    return ImuSample(jnp.asarray(t), jnp.asarray(g), None if a is None else jnp.asarray(a),
-                     None if m is None else jnp.asarray(m))
+    return ImuSample(
+        jnp.asarray(t), jnp.asarray(g), None if a is None else jnp.asarray(a), None if m is None else jnp.asarray(m)
+    )
 
 
 def test_mahony_init_matches_broad_and_triad_is_correct():
@@ -253,8 +274,9 @@ def test_mahony_step_matches_matrix_reference_and_missing_samples():
             g_in[2] = np.nan
         st, out = step(p, st, sample(k * dt, g_in, a_in, m_in), dt)
         g_used = g_last if case == 4 else g
-        q_ref, xi_ref = mahony_step_matrices(q_ref, xi_ref, g_used, None if case in (1, 3) else a,
-                                             None if case in (2, 3) else m, kp, ki, dt)
+        q_ref, xi_ref = mahony_step_matrices(
+            q_ref, xi_ref, g_used, None if case in (1, 3) else a, None if case in (2, 3) else m, kp, ki, dt
+        )
         g_last = g_used
         np.testing.assert_allclose(np.asarray(st.q), q_ref, atol=1e-13)
         np.testing.assert_allclose(np.asarray(out.bias), -xi_ref, atol=1e-13)
@@ -339,13 +361,16 @@ def test_padding_alignment_and_differentiable_batch_metric():
         st, o = step(p, st, sample(k), 1.0 / tr.rate_hz)
         np.testing.assert_allclose(q[k], np.asarray(o.q), atol=1e-14)
     # the metric accumulated in the scan (atan2 form) equals BROAD's numpy formulas on the stored estimates
-    np.testing.assert_allclose([res[tr.name][m] for m in broad.METRICS],
-                               [broad.broad_errors(q, tr.quat_true, tr.movement)[m] for m in broad.METRICS],
-                               rtol=1e-9)
+    np.testing.assert_allclose(
+        [res[tr.name][m] for m in broad.METRICS],
+        [broad.broad_errors(q, tr.quat_true, tr.movement)[m] for m in broad.METRICS],
+        rtol=1e-9,
+    )
 
     padded = broad.pad_trials(trials)
-    fn = engine.compiled(obs, engine.Recorded(padded.samples.t.shape[1] - 1), broad.METRIC_REDUCER, hold="next",
-                         obs_dtype=jnp.float64)
+    fn = engine.compiled(
+        obs, engine.Recorded(padded.samples.t.shape[1] - 1), broad.METRIC_REDUCER, hold="next", obs_dtype=jnp.float64
+    )
     item = broad.batch_item(padded, jnp.float64)
 
     def loss(params):
@@ -444,13 +469,17 @@ def test_published_mahony_float32_bit_exact():
         pytest.skip("--xla_cpu_max_isa=SSE4_2 is an x86 flag")
     pub, names = published_trials()
     env = dict(os.environ, XLA_FLAGS="--xla_cpu_max_isa=SSE4_2", JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", _EXACT_SCRIPT, str(DATA), ",".join(names), str(Path(__file__).parent)],
-                          env=env,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", _EXACT_SCRIPT, str(DATA), ",".join(names), str(Path(__file__).parent)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if proc.returncode != 0 and "xla_cpu_max_isa" in proc.stderr:
         pytest.skip("this XLA does not know --xla_cpu_max_isa")
     assert proc.returncode == 0, proc.stderr[-3000:]
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1]
-    res = json.loads(line[len("RESULT"):])
+    res = json.loads(line[len("RESULT") :])
     diffs = [res[n][k] - pub["trials"][n]["tagp_parameters"][k] for n in names for k in broad.METRICS]
     assert max(abs(d) for d in diffs) < 1e-10, max(abs(d) for d in diffs)

@@ -1,4 +1,5 @@
 """The command line end to end on short runs: exit codes, JSON layout, clear errors."""
+
 import json
 
 import numpy as np
@@ -23,15 +24,34 @@ def test_reproduce_batista_so3_writes_metrics_json(tmp_path):
 def test_observer_specific_flags_are_checked(capsys):
     assert cli.main(["simulate", "--observer", "batista-so3", "--x2-0", "1,2,3", "--runs", "1", "--duration", "1"]) == 2
     assert "does not apply" in capsys.readouterr().err
-    assert cli.main(["simulate", "--observer", "batista-ges", "--integrator", "rk4", "--runs", "1", "--duration", "1"]) == 2
+    assert (
+        cli.main(["simulate", "--observer", "batista-ges", "--integrator", "rk4", "--runs", "1", "--duration", "1"])
+        == 2
+    )
 
 
 def test_simulate_complementary_constant_reference_does_not_converge_rotating_does(tmp_path):
     res = {}
     for scen in ("constant", "rotating"):
         out = tmp_path / f"{scen}.json"
-        rc = cli.main(["simulate", "--observer", "complementary", "--scenario", scen, "--runs", "1", "--duration", "60",
-                       "--noise-scale", "0", "--quiet", "--json", str(out)])
+        rc = cli.main(
+            [
+                "simulate",
+                "--observer",
+                "complementary",
+                "--scenario",
+                scen,
+                "--runs",
+                "1",
+                "--duration",
+                "60",
+                "--noise-scale",
+                "0",
+                "--quiet",
+                "--json",
+                str(out),
+            ]
+        )
         assert rc == 0
         res[scen] = json.loads(out.read_text())["metrics"]["final_angle_error_deg"]["mean"]
     assert res["rotating"] < 0.2 < 5.0 < res["constant"]
@@ -126,36 +146,56 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
         "    q = q / jnp.linalg.norm(q)\n"
         "    return S(st.t + dt, q), S(st.t + dt, q)\n"
         "OBSERVER = jaxatt.Observer(init, step, 'gyro_only')\n"
-        "PARAMS = P(jnp.asarray(1.0))\n")
+        "PARAMS = P(jnp.asarray(1.0))\n"
+    )
     samples, r_true = _sim_log(5.0)
     log = tmp_path / "log.npz"
     logs.save_log(log, samples)
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "est.csv"
-    assert cli.main(["filter", "--log", str(log), "--observer", "my_filter:OBSERVER", "--params", "my_filter:PARAMS",
-                     "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "filter",
+                "--log",
+                str(log),
+                "--observer",
+                "my_filter:OBSERVER",
+                "--params",
+                "my_filter:PARAMS",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     table = np.genfromtxt(out, delimiter=",", names=True)
     assert table.dtype.names == ("t", "qw", "qx", "qy", "qz") and len(table) == len(samples.t)
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["filter", "--log", "/nonexistent/log.csv", "--out", "{tmp}/e.csv"], "not found|No such file|does not exist"),
-    (["filter", "--log", "{log}", "--out", "{tmp}"], "is a folder"),
-    (["filter", "--log", "{log}", "--observer", "nope", "--out", "{tmp}/e.csv"], "unknown observer"),
-    (["filter", "--log", "{log}", "--observer", "nomodule:X", "--out", "{tmp}/e.csv"], "cannot import"),
-    (["filter", "--log", "{log}", "--observer", "robust", "--params", "a:b", "--out", "{tmp}/e.csv"], "--params"),
-    (["filter", "--log", "{log}", "--gains", "{tmp}/missing.json", "--out", "{tmp}/e.csv"], "not found"),
-    (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--json", "{tmp}"], "is a folder"),
-    (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--m-init", "rescaled"], "does not apply"),
-    (["reproduce", "nlio-case1", "--runs", "1", "--aggressive"], "does not apply"),
-    (["simulate", "--observer", "complementary", "--latitude", "45", "--runs", "1"], "does not apply"),
-    (["simulate", "--observer", "batista-ges", "--gain", "5", "--runs", "1"], "does not apply"),
-    (["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"],
-     "window_start"),
-    (["evaluate", "--experiment", "batista-so3", "--gains", "{tmp}/missing.json"], "not found"),
-    (["broad", "--data-dir", "/nonexistent"], "not found"),
-    (["tune", "--experiment", "batista-ges", "--out", "{tmp}", "--steps", "1"], "is a folder"),
-])
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["filter", "--log", "/nonexistent/log.csv", "--out", "{tmp}/e.csv"], "not found|No such file|does not exist"),
+        (["filter", "--log", "{log}", "--out", "{tmp}"], "is a folder"),
+        (["filter", "--log", "{log}", "--observer", "nope", "--out", "{tmp}/e.csv"], "unknown observer"),
+        (["filter", "--log", "{log}", "--observer", "nomodule:X", "--out", "{tmp}/e.csv"], "cannot import"),
+        (["filter", "--log", "{log}", "--observer", "robust", "--params", "a:b", "--out", "{tmp}/e.csv"], "--params"),
+        (["filter", "--log", "{log}", "--gains", "{tmp}/missing.json", "--out", "{tmp}/e.csv"], "not found"),
+        (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--json", "{tmp}"], "is a folder"),
+        (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--m-init", "rescaled"], "does not apply"),
+        (["reproduce", "nlio-case1", "--runs", "1", "--aggressive"], "does not apply"),
+        (["simulate", "--observer", "complementary", "--latitude", "45", "--runs", "1"], "does not apply"),
+        (["simulate", "--observer", "batista-ges", "--gain", "5", "--runs", "1"], "does not apply"),
+        (
+            ["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"],
+            "window_start",
+        ),
+        (["evaluate", "--experiment", "batista-so3", "--gains", "{tmp}/missing.json"], "not found"),
+        (["broad", "--data-dir", "/nonexistent"], "not found"),
+        (["tune", "--experiment", "batista-ges", "--out", "{tmp}", "--steps", "1"], "is a folder"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
     from jaxatt.data import logs
 
@@ -174,8 +214,24 @@ def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
 def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     gains = tmp_path / "g.json"
     # no step: the command's plumbing (the gradient through the scan is tested in test_tune.py)
-    rc = cli.main(["tune", "--experiment", "batista-so3", "--steps", "0", "--train-runs", "2", "--val-runs", "0",
-                   "--duration", "6", "--out", str(gains), "--quiet"])
+    rc = cli.main(
+        [
+            "tune",
+            "--experiment",
+            "batista-so3",
+            "--steps",
+            "0",
+            "--train-runs",
+            "2",
+            "--val-runs",
+            "0",
+            "--duration",
+            "6",
+            "--out",
+            str(gains),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     d = json.loads(gains.read_text())
     assert d["format"] == "jaxatt-gains/2" and d["observer"] == d["study"] == "batista-so3" and d["status"] == "done"
@@ -183,8 +239,25 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     assert cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--out", str(gains)]) == 2
     assert "exists" in capsys.readouterr().err
     out = tmp_path / "e.json"
-    assert cli.main(["evaluate", "--experiment", "batista-so3", "--gains", str(gains), "--runs", "2",
-                     "--duration", "6", "--json", str(out), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "evaluate",
+                "--experiment",
+                "batista-so3",
+                "--gains",
+                str(gains),
+                "--runs",
+                "2",
+                "--duration",
+                "6",
+                "--json",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     e = json.loads(out.read_text())
     assert e["gains_path"] == str(gains) and "comparison" in e and e["complete"]
     # gains of another study are refused
@@ -223,15 +296,36 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
     trials = jaxatt.data.broad.load(d)
     score = jaxatt.broad_score("madgwick", None, trials)
     assert b["trials"]["24_disturbed_sim"]["total_rmse_deg"] == pytest.approx(
-        score.trials["24_disturbed_sim"].total_rmse_deg, rel=1e-12)
+        score.trials["24_disturbed_sim"].total_rmse_deg, rel=1e-12
+    )
     g = tmp_path / "g.json"
-    assert cli.main(["broad-tune", "--data-dir", str(d), "--observer", "madgwick", "--steps", "2", "--out", str(g),
-                     "--quiet"]) == 0
+    assert (
+        cli.main(
+            ["broad-tune", "--data-dir", str(d), "--observer", "madgwick", "--steps", "2", "--out", str(g), "--quiet"]
+        )
+        == 0
+    )
     saved = json.loads(g.read_text())
     assert saved["observer"] == "madgwick" and saved["status"] == "done" and "resume" in saved
     assert cli.main(["broad", "--data-dir", str(d), "--observer", "madgwick", "--gains", str(g)]) == 0
     # a finished cosine-schedule fit cannot be resumed to another step count (its learning-rate schedule would
     # change); the refusal names the setting
-    assert cli.main(["broad-tune", "--data-dir", str(d), "--observer", "madgwick", "--steps", "3", "--out", str(g),
-                     "--resume", "--quiet"]) == 2
+    assert (
+        cli.main(
+            [
+                "broad-tune",
+                "--data-dir",
+                str(d),
+                "--observer",
+                "madgwick",
+                "--steps",
+                "3",
+                "--out",
+                str(g),
+                "--resume",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert "'steps' differs" in capsys.readouterr().err

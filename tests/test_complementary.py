@@ -1,6 +1,7 @@
 """The observer of Trumpf et al. (2012), eq. (10) / (18), on the scenarios of Sections III-IV: agreement of the
 matrix and quaternion implementations, the Lyapunov function of Proposition 4.6, convergence under persistent
 excitation and its failure without, compatible measurements, Mahony's bias integrator, missing data, errors."""
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -11,8 +12,8 @@ import pytest  # noqa: E402
 
 from jaxatt import analysis, montecarlo, so3  # noqa: E402
 from jaxatt.observers import complementary as C  # noqa: E402
-from jaxatt.types import ImuSample  # noqa: E402
 from jaxatt.sim import references as S  # noqa: E402
+from jaxatt.types import ImuSample  # noqa: E402
 
 DT = 0.02
 DURATION = 40.0  # every log has 2001 samples, so the jitted scans compile once per (form, hold, n1, n2)
@@ -32,8 +33,9 @@ def rot(axis_angle):
 def angle_between(r1, r2):
     """Angle (rad) of r1^T r2 for (..., 3, 3) arrays, numpy."""
     e = np.swapaxes(np.asarray(r1), -1, -2) @ np.asarray(r2)
-    s = 0.5 * np.linalg.norm(np.stack([e[..., 2, 1] - e[..., 1, 2], e[..., 0, 2] - e[..., 2, 0],
-                                       e[..., 1, 0] - e[..., 0, 1]], -1), axis=-1)
+    s = 0.5 * np.linalg.norm(
+        np.stack([e[..., 2, 1] - e[..., 1, 2], e[..., 0, 2] - e[..., 2, 0], e[..., 1, 0] - e[..., 0, 1]], -1), axis=-1
+    )
     return np.arctan2(s, 0.5 * (np.trace(e, axis1=-2, axis2=-1) - 1.0))
 
 
@@ -126,8 +128,9 @@ def test_correction_terms_of_eq10_and_eq18_agree_and_vanish_at_truth():
         # small-error linearisation of Prop. 4.6: d z / dt = -P z with P = sum q (I - v v^T), E_r = exp(z)
         z = rng.normal(size=3) * 1e-6
         sig = np.asarray(corr_m(rot(z) @ r, u, k, l))
-        v = np.concatenate([ar / np.linalg.norm(ar, axis=1, keepdims=True),
-                            (r @ br.T).T / np.linalg.norm(br, axis=1, keepdims=True)])
+        v = np.concatenate(
+            [ar / np.linalg.norm(ar, axis=1, keepdims=True), (r @ br.T).T / np.linalg.norm(br, axis=1, keepdims=True)]
+        )
         P = sum(q * (np.eye(3) - np.outer(vi, vi)) for q, vi in zip(np.r_[k, l], v))
         np.testing.assert_allclose(r @ sig, -P @ z, atol=1e-11)  # inertial-frame rate of E_r = -P z
 
@@ -289,12 +292,21 @@ def test_fused_simulation_runner_accepts_vector_scenarios():
     samples, truth_r = S.simulate_vectors(scn, DURATION, DT)
     r0 = initial_estimates(truth_r[0], [90.0], seed=8)[0]
     p = C.default_params(2, 0, k=1.0, k_i=0.3, r_hat_0=r0)
-    summary, trace, _ = montecarlo.simulate(scn._replace(r0=truth_r[0]), C.make_observer(), p, duration=DURATION,
-                                            dt=DT, errors_fn=S.vector_errors, window_start=30.0, trace_every=1)
+    summary, trace, _ = montecarlo.simulate(
+        scn._replace(r0=truth_r[0]),
+        C.make_observer(),
+        p,
+        duration=DURATION,
+        dt=DT,
+        errors_fn=S.vector_errors,
+        window_start=30.0,
+        trace_every=1,
+    )
     out = run(p, samples)
     np.testing.assert_allclose(trace["angle_error_deg"], angle_deg(out, truth_r), atol=1e-9)
-    np.testing.assert_allclose(trace["norm_bias"], np.linalg.norm(np.asarray(out.bias) - np.deg2rad([1.2, -0.7, 2.0]),
-                                                                  axis=-1), atol=1e-12)
+    np.testing.assert_allclose(
+        trace["norm_bias"], np.linalg.norm(np.asarray(out.bias) - np.deg2rad([1.2, -0.7, 2.0]), axis=-1), atol=1e-12
+    )
     assert summary["final_norm_bias"] < 1e-5 and summary["mean_angle_error_deg"] < 0.2  # ZOH floor ~0.1 deg
 
 

@@ -1,5 +1,6 @@
 """The documentation derives from the code: the README's observer table lists every registered observer with its
 module, every observer module has a docs page, and the concepts page's example runs."""
+
 from pathlib import Path
 
 import numpy as np

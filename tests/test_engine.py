@@ -1,6 +1,7 @@
 """The one scan (jaxatt.engine): T estimates for T samples with estimate 0 from init, the three holds, per-step
 dt from timestamps, estimate 0 of an observer without ``output``, records decimated from estimate 0, and
 checkpointed segments giving the same result as the plain scan. Checked against hand-written loops."""
+
 from typing import NamedTuple
 
 import jax
@@ -96,8 +97,11 @@ def test_records_start_at_estimate_0_and_segments_change_nothing():
     checkpointed scan (segments of 4 steps, with per-step remat) gives the same records and the same gradient."""
     n = 13
     s = log(n)
-    items = {"samples": jax.tree_util.tree_map(lambda a: jnp.stack([a, a[::-1] if a.ndim == 1 else a]), s),
-             "dt": jnp.asarray([0.1, 0.05]), "truth": None}
+    items = {
+        "samples": jax.tree_util.tree_map(lambda a: jnp.stack([a, a[::-1] if a.ndim == 1 else a]), s),
+        "dt": jnp.asarray([0.1, 0.05]),
+        "truth": None,
+    }
     items["samples"] = items["samples"]._replace(t=jnp.stack([s.t, s.t]))
     pick = engine.records_of(_x_of, 2)
     plain = engine.batch_fn(TOY, engine.Recorded(n - 1), pick, hold="zoh")

@@ -2,6 +2,7 @@
 monte_carlo take it like a registered one. Each result is checked against a second, independent computation
 (the numpy BROAD metric of the stored estimates, the fused simulation against a recorded log of the same run, a
 finite difference), and bad input gets one clear line."""
+
 import json
 from typing import NamedTuple
 
@@ -9,12 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from broad_data import DATA, need_data
 
 import jaxatt
 from jaxatt import montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.types import ImuSample, Observer
-from broad_data import DATA, need_data
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -62,8 +63,14 @@ MY_PARAMS = MyParams(jnp.asarray(1.0), jnp.asarray(0.3))
 def short(trial, n):
     """The first n samples of a BROAD trial (its rest phase and the start of the movement)."""
     cut = lambda a: np.asarray(a)[:n]  # noqa: E731
-    return broad.Trial(trial.name, jax.tree_util.tree_map(cut, trial.samples), cut(trial.quat_true),
-                       cut(trial.movement), trial.rate_hz, trial.group)
+    return broad.Trial(
+        trial.name,
+        jax.tree_util.tree_map(cut, trial.samples),
+        cut(trial.quat_true),
+        cut(trial.movement),
+        trial.rate_hz,
+        trial.group,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +87,9 @@ def test_filter_runs_your_observer_and_converges():
     samples, truth = montecarlo.simulate_log(scn, duration=60.0, dt=0.01)
     est = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
     assert est.quat.shape == (6001, 4) and est.quat.dtype == np.float64 and est.observer == "my_mahony"
-    np.testing.assert_allclose(est.quat[0], np.asarray(my_init(MY_PARAMS, jax.tree_util.tree_map(
-        lambda a: a[0], samples)).q), atol=1e-15)
+    np.testing.assert_allclose(
+        est.quat[0], np.asarray(my_init(MY_PARAMS, jax.tree_util.tree_map(lambda a: a[0], samples)).q), atol=1e-15
+    )
     err = np.rad2deg(np.asarray(so3.angle_error(truth.r, so3.quat_to_matrix(jnp.asarray(est.quat)))))
     assert err[0] < 1e-6 and err.max() < 1.5 and err[-1000:].max() < 0.15, (err.max(), err[-1000:].max())
     np.testing.assert_allclose(est.outputs["bias"][-1], [0.01, 0.0, 0.0], atol=2e-3)
@@ -91,8 +99,9 @@ def test_broad_score_of_your_observer_equals_the_numpy_metric(trials):
     score = jaxatt.broad_score(MY_OBSERVER, MY_PARAMS, trials)
     assert set(score.trials) == {t.name for t in trials} and set(score.groups) == {"undisturbed", "disturbed", "all"}
     for tr in trials:
-        est = jaxatt.filter(MY_OBSERVER, tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz,
-                            params=MY_PARAMS)
+        est = jaxatt.filter(
+            MY_OBSERVER, tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz, params=MY_PARAMS
+        )
         ref = broad.broad_errors(est.quat, tr.quat_true, tr.movement)
         s = score.trials[tr.name]
         for m in broad.METRICS:
@@ -152,26 +161,37 @@ def test_registered_observers_through_the_front_door():
     np.testing.assert_allclose(ned.rotation[-1], c @ enu.rotation[-1], atol=1e-12)
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m), "dt"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.0), "dt"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=float("nan")), "dt"),
-    (lambda g, a, m: jaxatt.filter("robust", g[:, :2], a, m, dt=0.01), "gyr"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a[:-1], m, dt=0.01), "acc"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, None, dt=0.01), "needs mag"),
-    (lambda g, a, m: jaxatt.filter("nope", g, a, m, dt=0.01), "unknown observer"),
-    (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01), "params are required"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, frame="XYZ"), "frame"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
-    (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
-    (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
-    (lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, params=jaxatt.observers.mahony.Params(
-        jnp.asarray(-1.0), jnp.asarray(0.0))), "kp"),
-    (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=MY_PARAMS._replace(kp=jnp.asarray(np.nan))),
-     "not finite"),
-    (lambda g, a, m: jaxatt.broad_score("robust", None, []), "empty"),
-    (lambda g, a, m: jaxatt.fit("robust", None, [1, 2]), "Trial"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m), "dt"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.0), "dt"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=float("nan")), "dt"),
+        (lambda g, a, m: jaxatt.filter("robust", g[:, :2], a, m, dt=0.01), "gyr"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a[:-1], m, dt=0.01), "acc"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, None, dt=0.01), "needs mag"),
+        (lambda g, a, m: jaxatt.filter("nope", g, a, m, dt=0.01), "unknown observer"),
+        (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01), "params are required"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, frame="XYZ"), "frame"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
+        (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
+        (
+            lambda g, a, m: jaxatt.filter(
+                "mahony", g, a, m, dt=0.01, params=jaxatt.observers.mahony.Params(jnp.asarray(-1.0), jnp.asarray(0.0))
+            ),
+            "kp",
+        ),
+        (
+            lambda g, a, m: jaxatt.filter(
+                MY_OBSERVER, g, a, m, dt=0.01, params=MY_PARAMS._replace(kp=jnp.asarray(np.nan))
+            ),
+            "not finite",
+        ),
+        (lambda g, a, m: jaxatt.broad_score("robust", None, []), "empty"),
+        (lambda g, a, m: jaxatt.fit("robust", None, [1, 2]), "Trial"),
+    ],
+)
 def test_bad_input_is_one_clear_line(call, match):
     rng = np.random.default_rng(0)
     g, a, m = rng.normal(size=(50, 3)) * 0.1, np.tile([0, 0, 9.8], (50, 1)), np.tile([0, 20, -40.0], (50, 1))
@@ -208,12 +228,14 @@ def test_float64_input_without_x64_warns_and_runs_float32():
     finally:
         jax.config.update("jax_enable_x64", True)
     assert api.compute_dtype(np.zeros(3)) == np.float64
-    code = ("import warnings, numpy as np, jax, jaxatt\n"
-            "with warnings.catch_warnings(record=True) as w:\n"
-            "    warnings.simplefilter('always')\n"
-            "    est = jaxatt.filter('mahony', np.zeros((20, 3)), np.tile([0, 0, 9.8], (20, 1)),\n"
-            "                        np.tile([0, 20, -40.0], (20, 1)), dt=0.01)\n"
-            "print(est.quat.dtype, jax.config.jax_enable_x64, any('x64' in str(x.message) for x in w))")
+    code = (
+        "import warnings, numpy as np, jax, jaxatt\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    est = jaxatt.filter('mahony', np.zeros((20, 3)), np.tile([0, 0, 9.8], (20, 1)),\n"
+        "                        np.tile([0, 20, -40.0], (20, 1)), dt=0.01)\n"
+        "print(est.quat.dtype, jax.config.jax_enable_x64, any('x64' in str(x.message) for x in w))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.stdout.split() == ["float32", "False", "True"], out.stderr[-2000:]
 
@@ -230,6 +252,7 @@ def test_imu_sample_is_the_users_input_type():
         seen["step"] = type(s)
         return st._replace(t=st.t + dt), MyOut(st.t + dt, st.q, st.bias)
 
-    jaxatt.filter(Observer(init, step, "probe"), np.zeros((3, 3)), np.ones((3, 3)), np.ones((3, 3)), dt=0.1,
-                  params=MY_PARAMS)
+    jaxatt.filter(
+        Observer(init, step, "probe"), np.zeros((3, 3)), np.ones((3, 3)), np.ones((3, 3)), dt=0.1, params=MY_PARAMS
+    )
     assert seen == {"init": ImuSample, "step": ImuSample}

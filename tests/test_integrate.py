@@ -1,4 +1,5 @@
 """Order and accuracy of jaxatt.integrate against independent numpy references (float64, see conftest)."""
+
 import functools
 
 import jax
@@ -18,14 +19,22 @@ T_END = 60.0
 def omega_np(t):
     t = np.asarray(t, float)
     return np.stack(
-        [5 * DEG * np.sin(2 * np.pi * t / 60), 1 * DEG * np.sin(2 * np.pi * t / 180), -2 * DEG * np.sin(2 * np.pi * t / 300)],
+        [
+            5 * DEG * np.sin(2 * np.pi * t / 60),
+            1 * DEG * np.sin(2 * np.pi * t / 180),
+            -2 * DEG * np.sin(2 * np.pi * t / 300),
+        ],
         axis=-1,
     )
 
 
 def omega_jax(t):
     return jnp.stack(
-        [5 * DEG * jnp.sin(2 * jnp.pi * t / 60), 1 * DEG * jnp.sin(2 * jnp.pi * t / 180), -2 * DEG * jnp.sin(2 * jnp.pi * t / 300)],
+        [
+            5 * DEG * jnp.sin(2 * jnp.pi * t / 60),
+            1 * DEG * jnp.sin(2 * jnp.pi * t / 180),
+            -2 * DEG * jnp.sin(2 * jnp.pi * t / 300),
+        ],
         axis=-1,
     )
 
@@ -34,8 +43,11 @@ def skew_np(w):
     """Batched S(w) in numpy, shape (..., 3, 3)."""
     z = np.zeros(w.shape[:-1])
     return np.stack(
-        [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
-         np.stack([-w[..., 1], w[..., 0], z], -1)],
+        [
+            np.stack([z, -w[..., 2], w[..., 1]], -1),
+            np.stack([w[..., 2], z, -w[..., 0]], -1),
+            np.stack([-w[..., 1], w[..., 0], z], -1),
+        ],
         axis=-2,
     )
 
@@ -272,7 +284,9 @@ def test_input_at_interval_and_hold():
     assert input_at(u, 1.0) is end
     for frac in (0.25, 0.5, 0.8):
         got = input_at(u, frac)
-        np.testing.assert_allclose(np.asarray(got["g"]), (1 - frac) * np.array([1.0, -2.0, 4.0]) + frac * np.array([3.0, 2.0, 0.0]), atol=1e-15)
+        np.testing.assert_allclose(
+            np.asarray(got["g"]), (1 - frac) * np.array([1.0, -2.0, 4.0]) + frac * np.array([3.0, 2.0, 0.0]), atol=1e-15
+        )
         np.testing.assert_allclose(float(got["s"]), (1 - frac) * 3.0 + frac * -1.0, atol=1e-15)
     np.testing.assert_allclose(np.asarray(input_at(u, 0.5)["g"]), [2.0, 0.0, 2.0], atol=0)
     # a plain sample is held whatever the fraction
@@ -283,7 +297,7 @@ def test_input_at_interval_and_hold():
 def test_rkmk4_coupled_sphere_and_rotation_is_fourth_order_and_norm_preserving():
     """rkmk4_step on (x Euclidean, v on a sphere, R on SO(3)) with state-dependent rates: |v| and R^T R = I
     exactly, and the error against a fine classical RK4 falls ~16x when the step halves."""
-    from jaxatt.integrate import rkmk4_step, rk4_step
+    from jaxatt.integrate import rk4_step, rkmk4_step
 
     def rates(x, v, r, t):
         a = jnp.stack([jnp.sin(t) + 0.3 * x[0], 0.5 * jnp.cos(2 * t), 0.2 + 0.1 * v[2]])

@@ -1,4 +1,5 @@
 """Plain IMU logs: CSV / NPZ round trips and clear errors on bad input."""
+
 import numpy as np
 import pytest
 

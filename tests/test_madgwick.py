@@ -11,6 +11,7 @@ the reference runs ``Q[t] = updateMARG(Q[t-1], gyr[t], acc[t], mag[t])`` itself 
 BROAD data (Laidig et al., Data 6(7), 2021, CC BY 4.0) in ../shared/data/broad: the tests that need it skip
 without it, except under CI=true, where they fail.
 """
+
 import os
 
 import jax
@@ -148,15 +149,17 @@ def test_registry_entry_and_filter_frames():
     assert est.frame == "ENU" and est.quat.shape == (len(gyr), 4)
     np.testing.assert_allclose(est.quat, frames.change_frame(q_nwu, "ENU", "NWU"), rtol=0, atol=1e-14)
     assert np.max(np.abs(est.quat - q_nwu)) > 0.1  # the rotation to ENU was applied
-    np.testing.assert_allclose(jaxatt.filter("madgwick", gyr, acc, mag, dt=dt, frame="NWU").quat, q_nwu, rtol=0,
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        jaxatt.filter("madgwick", gyr, acc, mag, dt=dt, frame="NWU").quat, q_nwu, rtol=0, atol=1e-14
+    )
     # Same as the observer run directly with the default params.
     out = montecarlo.log_runner(madgwick.make_observer(), "next")(
-        madgwick.default_params(), ImuSample(np.arange(len(gyr)) * dt, gyr, acc, mag), dt)
+        madgwick.default_params(), ImuSample(np.arange(len(gyr)) * dt, gyr, acc, mag), dt
+    )
     np.testing.assert_allclose(np.asarray(out.q_nwu), q_nwu, rtol=0, atol=1e-14)
     # The estimate follows the synthetic truth (NWU) after the start.
     ang = np.rad2deg(angle_between(q_true, q_nwu))
-    assert ang[0] < 3.0 and np.mean(ang[len(ang) // 2:]) < 3.0, (ang[0], np.mean(ang[len(ang) // 2:]))
+    assert ang[0] < 3.0 and np.mean(ang[len(ang) // 2 :]) < 3.0, (ang[0], np.mean(ang[len(ang) // 2 :]))
     # ENU truth = q_z(90 deg) (x) NWU truth: est.quat is compared with it equally well.
     ang_enu = np.rad2deg(angle_between(frames.change_frame(q_true, "ENU", "NWU"), est.quat))
     np.testing.assert_allclose(ang_enu, ang, atol=1e-6)
@@ -215,9 +218,9 @@ def test_missing_samples_match_ahrs_semantics():
     acc[[7, 50, 51, 300, 401]] = np.nan
     acc[250] = 0.0
     acc[[60, 61]] = np.nan
-    mag[[60, 61]] = np.nan          # both missing
+    mag[[60, 61]] = np.nan  # both missing
     gyr[[20, 21, 350]] = np.nan
-    gyr[35, 1] = np.nan             # one component missing: the whole sample is missing
+    gyr[35, 1] = np.nan  # one component missing: the whole sample is missing
     n = len(gyr)
     samples = ImuSample(np.arange(n) * dt, gyr, acc, mag)
     out = montecarlo.log_runner(madgwick.make_observer(), "next")(madgwick.default_params(), samples, dt)
@@ -246,9 +249,9 @@ def test_missing_samples_match_ahrs_semantics():
     # Step by step against the rules themselves, from the observer's own previous estimate.
     for t in (5, 100, 200, 400):  # mag missing: ahrs' updateIMU
         assert not mag_ok[t] and acc_ok[t]
-        assert max_diff(f.updateIMU(q[t - 1], gyr[t], acc[t])[None], q[t:t + 1]) < 1e-14
+        assert max_diff(f.updateIMU(q[t - 1], gyr[t], acc[t])[None], q[t : t + 1]) < 1e-14
         # ... which is a real difference from the MARG update.
-        assert max_diff(f.updateMARG(q[t - 1], gyr[t], acc[t], mag[t - 1])[None], q[t:t + 1]) > 1e-8
+        assert max_diff(f.updateMARG(q[t - 1], gyr[t], acc[t], mag[t - 1])[None], q[t : t + 1]) > 1e-8
     for t in (7, 50, 250, 60, 61):  # acc missing (with or without mag): gyro integration only
         assert not acc_ok[t]
         g = gyr[t] if np.all(np.isfinite(gyr[t])) else gyr[t - 1]

@@ -1,5 +1,6 @@
 """MEKF with gyro-bias states (Markley & Crassidis): agreement with an independent plain-numpy implementation
 on a noisy log, local convergence (noise-free, small initial errors), covariance sanity, bad input."""
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -33,9 +34,13 @@ def _qmul(p, q):
 def _qrot(q):
     """Body-to-reference rotation matrix of a unit quaternion (w, x, y, z)."""
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _qexp(phi):
@@ -111,8 +116,17 @@ def noisy_log():
 def test_matches_independent_numpy_implementation(noisy_log, hold):
     samples, truth = noisy_log
     r0 = np.asarray(so3.exp(jnp.asarray([0.2, -0.3, 0.5])))
-    p = mekf.default_params(ACC_REF, MAG_REF, acc_noise_std=0.1, mag_noise_std=0.02, bias_rw=1e-4, r_hat_0=r0,
-                            b_hat_0=(0.01, 0.0, -0.01), p0_att=1e-2, p0_bias=1e-5)
+    p = mekf.default_params(
+        ACC_REF,
+        MAG_REF,
+        acc_noise_std=0.1,
+        mag_noise_std=0.02,
+        bias_rw=1e-4,
+        r_hat_0=r0,
+        b_hat_0=(0.01, 0.0, -0.01),
+        p0_att=1e-2,
+        p0_bias=1e-5,
+    )
     out = montecarlo.run(mekf.make_observer(), p, samples, DT, hold=hold, validate=mekf.check_params)
     q_np, b_np, sig_np = numpy_mekf(samples, p, hold)
     assert out.q.shape[0] == samples.t.shape[0]  # T estimates: row 0 is init's, rows 1... the steps
@@ -137,9 +151,15 @@ def test_local_convergence_noise_free():
     samples, truth = montecarlo.simulate_log(ahrs.AhrsScenario.make(noise_scale=0.0), duration=150.0, dt=DT)
     rng = np.random.default_rng(0)
     base = mekf.default_params(ACC_REF, MAG_REF, bias_rw=1e-5)
-    r0s = [np.asarray(so3.exp(jnp.asarray(a))) for a in
-           (np.deg2rad(15.0) * np.array([1.0, 0, 0]), np.deg2rad(10.0) * rng.normal(size=3) / np.sqrt(3),
-            np.deg2rad(15.0) * np.array([0, 0.6, 0.8]), np.zeros(3))]
+    r0s = [
+        np.asarray(so3.exp(jnp.asarray(a)))
+        for a in (
+            np.deg2rad(15.0) * np.array([1.0, 0, 0]),
+            np.deg2rad(10.0) * rng.normal(size=3) / np.sqrt(3),
+            np.deg2rad(15.0) * np.array([0, 0.6, 0.8]),
+            np.zeros(3),
+        )
+    ]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[base._replace(r_hat_0=jnp.asarray(r)) for r in r0s])
     run = jax.jit(jax.vmap(montecarlo.log_runner(mekf.make_observer(), "linear"), in_axes=(0, None, None)))
     out = run(batch, samples, jnp.full(samples.t.shape[0] - 1, DT))

@@ -2,6 +2,7 @@
 properties (Lemma 1, Theorem 1), the linear error dynamics of the auxiliary observer (eq. 18), the projection
 bound, the Riccati gains (eqs. 28-30) against an independent numpy iteration and the DARE, the AHRS simulator
 (mixed noise, bursts) and the window metrics added to the Monte Carlo runner."""
+
 import functools
 
 import jax
@@ -14,10 +15,10 @@ import pytest  # noqa: E402
 import scipy.linalg  # noqa: E402
 
 from jaxatt import metrics, montecarlo, so3  # noqa: E402
-from jaxatt.studies import nlio as E  # noqa: E402
 from jaxatt.integrate import Interval, rk4_step  # noqa: E402
 from jaxatt.observers import nlio  # noqa: E402
 from jaxatt.sim import ahrs  # noqa: E402
+from jaxatt.studies import nlio as E  # noqa: E402
 
 DT = 0.01
 ACC_REF = np.array([0.0, 0.0, ahrs.PAPER_GRAVITY])
@@ -49,8 +50,9 @@ def test_injection_vanishes_at_the_truth_and_is_linear_in_the_error(triad):
         a_b = nlio.triad_matrix(jnp.asarray(r.T @ ACC_REF), jnp.asarray(r.T @ MAG_REF), triad)
         np.testing.assert_allclose(nlio.injection(a_n, a_b, jnp.asarray(r)), 0.0, atol=1e-12)
         r_hat = rng.normal(size=(3, 3))
-        np.testing.assert_allclose(nlio.injection(a_n, a_b, jnp.asarray(r_hat)),
-                                   np.asarray(a_n) @ np.asarray(a_n).T @ (r - r_hat), atol=1e-9)
+        np.testing.assert_allclose(
+            nlio.injection(a_n, a_b, jnp.asarray(r_hat)), np.asarray(a_n) @ np.asarray(a_n).T @ (r - r_hat), atol=1e-9
+        )
     if triad == "orthonormal":
         np.testing.assert_allclose(np.asarray(a_n) @ np.asarray(a_n).T, np.eye(3), atol=1e-12)
 
@@ -63,8 +65,9 @@ def test_bias_law_sign_gives_bias_convergence():
     b_err = jnp.asarray([1e-3, -2e-3, 5e-4])
     # R^ = R exp(S(eps)) with Kp eps = b - b^ (the quasi-steady attitude error for Gamma = R - R^).
     r_hat = so3.mm(r, so3.exp(b_err / 15.0))
-    _, db = nlio.attitude_rhs(p, r_hat, jnp.zeros(3), jnp.zeros(3), a_n,
-                              nlio.triad_matrix(jnp.asarray(ACC_REF), jnp.asarray(MAG_REF)))
+    _, db = nlio.attitude_rhs(
+        p, r_hat, jnp.zeros(3), jnp.zeros(3), a_n, nlio.triad_matrix(jnp.asarray(ACC_REF), jnp.asarray(MAG_REF))
+    )
     np.testing.assert_allclose(db, 0.2 * b_err, rtol=2e-3)
 
 
@@ -84,14 +87,20 @@ def test_projection_keeps_the_bound_and_is_identity_inside():
             if abs(nb - hi) < 1e-12:
                 assert abs(b @ pt) < 1e-12  # ... and removed on the boundary
     b = np.array([hi, 0, 0])
-    np.testing.assert_allclose(nlio.projection(jnp.asarray(b), jnp.asarray([1.0, 2.0, 0.0]), lo, hi), [0, 2, 0],
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        nlio.projection(jnp.asarray(b), jnp.asarray([1.0, 2.0, 0.0]), lo, hi), [0, 2, 0], atol=1e-15
+    )
 
 
 def test_rotation_of_equals_the_svd_projection():
     rng = np.random.default_rng(2)
-    m = np.stack([(random_rotation(rng) + scale * rng.normal(size=(3, 3))) * rng.uniform(0.1, 10.0)
-                  for scale in (1e-3, 0.3, 1.0, 3.0) for _ in range(50)])
+    m = np.stack(
+        [
+            (random_rotation(rng) + scale * rng.normal(size=(3, 3))) * rng.uniform(0.1, 10.0)
+            for scale in (1e-3, 0.3, 1.0, 3.0)
+            for _ in range(50)
+        ]
+    )
     r = np.asarray(jax.jit(nlio.rotation_of)(jnp.asarray(m)))
     assert np.max(np.linalg.norm(np.einsum("bji,bjk->bik", r, r) - np.eye(3), axis=(-2, -1))) < 1e-10
     assert np.all(np.linalg.det(r) > 0)
@@ -115,13 +124,19 @@ def _base_params():
 
 def _initial_conditions():
     rng = np.random.default_rng(3)
-    r0s = [random_rotation(rng, np.deg2rad(170.0)), random_rotation(rng, np.deg2rad(179.0)),
-           random_rotation(rng), np.asarray(E.ahrs.random_euler_rotation(jax.random.PRNGKey(4))),
-           rng.normal(size=(3, 3)) * 2.0]
+    r0s = [
+        random_rotation(rng, np.deg2rad(170.0)),
+        random_rotation(rng, np.deg2rad(179.0)),
+        random_rotation(rng),
+        np.asarray(E.ahrs.random_euler_rotation(jax.random.PRNGKey(4))),
+        rng.normal(size=(3, 3)) * 2.0,
+    ]
     b0s = [np.zeros(3), -0.059 * BIAS / np.linalg.norm(BIAS), np.array([0.03, 0.0, 0.0]), np.zeros(3), np.zeros(3)]
     base = _base_params()
-    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[
-        base._replace(r_hat_0=jnp.asarray(r0), b_hat_0=jnp.asarray(b0)) for r0, b0 in zip(r0s, b0s)])
+    return jax.tree_util.tree_map(
+        lambda *a: jnp.stack(a),
+        *[base._replace(r_hat_0=jnp.asarray(r0), b_hat_0=jnp.asarray(b0)) for r0, b0 in zip(r0s, b0s)],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -230,8 +245,9 @@ def test_auxiliary_error_dynamics_are_linear(noise_free_log):
     b_wrong = jnp.asarray(BIAS + 0.01 * np.sin(0.3 * t + np.arange(3)))  # some b^(t) != b
     b_right = jnp.asarray(np.repeat(BIAS[None], n, 0))
     k_fixed = jnp.asarray(np.repeat((5.6 * np.eye(3))[None], n, 0))
-    k_tv = jnp.asarray((0.5 + 2.0 * np.exp(-t / 5.0))[..., None] * np.eye(3) + 0.1 * np.array(
-        [[0, 1, 0], [1, 0, 0], [0, 0, 0]]))
+    k_tv = jnp.asarray(
+        (0.5 + 2.0 * np.exp(-t / 5.0))[..., None] * np.eye(3) + 0.1 * np.array([[0, 1, 0], [1, 0, 0], [0, 0, 0]])
+    )
     for k in (k_fixed, k_tv):
         for b in (b_wrong, b_right):
             e_0 = _aux_errors(samples, truth, v_true0, b, k)
@@ -268,8 +284,10 @@ def test_riccati_gains_match_numpy_and_the_dare(noise_free_log, noise_free_runs)
     # estimate k holds the b^ and v^ the step over [t_k, t_{k+1}] starts from; estimate 0 is init's
     np.testing.assert_array_equal(np.asarray(out.bias)[0], np.zeros(3))
     b_prev = np.asarray(out.bias)[:-1]
-    for which, v_out, k_out, r, p0, ref in (("acc", out.v1, out.k1, sig_a**2, 1e-5, ACC_REF),
-                                            ("mag", out.v2, out.k2, sig_m**2, 5e-7, MAG_REF)):
+    for which, v_out, k_out, r, p0, ref in (
+        ("acc", out.v1, out.k1, sig_a**2, 1e-5, ACC_REF),
+        ("mag", out.v2, out.k2, sig_m**2, 5e-7, MAG_REF),
+    ):
         np.testing.assert_array_equal(np.asarray(v_out)[0], np.asarray(getattr(samples, which))[0])
         np.testing.assert_array_equal(np.asarray(k_out)[0], np.zeros((3, 3)))  # no Kalman update yet
         v_prev = np.asarray(v_out)[:-1]
@@ -281,8 +299,9 @@ def test_riccati_gains_match_numpy_and_the_dare(noise_free_log, noise_free_runs)
             post = ik @ pk @ ik.T + gain @ (r * np.eye(3)) @ gain.T  # eq. (30), Joseph form
             w = 0.5 * (gyr[k] + gyr[k + 1]) - b_prev[k]
             f = _np_rot(-w * DT)
-            s = np.array([[0, -v_prev[k][2], v_prev[k][1]], [v_prev[k][2], 0, -v_prev[k][0]],
-                          [-v_prev[k][1], v_prev[k][0], 0]])
+            s = np.array(
+                [[0, -v_prev[k][2], v_prev[k][1]], [v_prev[k][2], 0, -v_prev[k][0]], [-v_prev[k][1], v_prev[k][0], 0]]
+            )
             q = 1e-6 * s @ s.T
             pk = f @ post @ f.T + 0.5 * DT * (f @ q @ f.T + q)  # eq. (28)
             k_np.append(gain / DT)
@@ -361,8 +380,17 @@ def test_window_metrics_and_random_initial_estimates():
     """The runner's window MAE / RMSE equal numpy over the recorded errors; each run starts from its own random
     estimate, drawn from fold_in(run key, INIT_PARAMS_BLOCK) (so every observer of a run starts alike)."""
     cfg = E.config("case1", duration=5.0, windows=(("early", 0.0, 2.0), ("late", 3.0, 5.0)))
-    kw = dict(duration=cfg.duration, dt=DT, seed=4, errors_fn=E.errors, windows=cfg.windows, hold="linear",
-              init_params=E.random_initial_attitude, trace_every=1, trace_fn=_window_trace)
+    kw = dict(
+        duration=cfg.duration,
+        dt=DT,
+        seed=4,
+        errors_fn=E.errors,
+        windows=cfg.windows,
+        hold="linear",
+        init_params=E.random_initial_attitude,
+        trace_every=1,
+        trace_fn=_window_trace,
+    )
     obs, p = E.observer(cfg, "NLO"), E.params(cfg, "NLO")
     mc = montecarlo.monte_carlo(E.scenario(cfg), obs, p, runs=3, chunk=1, **kw)
     summ, trace, _ = montecarlo.simulate(E.scenario(cfg), obs, p, run_index=1, **kw)  # same compiled runner
@@ -374,8 +402,9 @@ def test_window_metrics_and_random_initial_estimates():
         sel = (t >= lo - 1e-9) & (t <= hi + 1e-9)
         for k in ("roll", "yaw", "bias"):
             np.testing.assert_allclose(summ[f"mae_{name}_{k}"], np.mean(np.abs(trace[k][sel]), axis=0), rtol=1e-10)
-            np.testing.assert_allclose(summ[f"rmse_{name}_{k}"], np.sqrt(np.mean(trace[k][sel] ** 2, axis=0)),
-                                       rtol=1e-10)
+            np.testing.assert_allclose(
+                summ[f"rmse_{name}_{k}"], np.sqrt(np.mean(trace[k][sel] ** 2, axis=0)), rtol=1e-10
+            )
     assert mc.per_run["mae_late_bias"].shape == (3, 3)  # (runs, 3)
     np.testing.assert_allclose(mc.per_run["mae_early_roll"][1], summ["mae_early_roll"], rtol=1e-12)
     np.testing.assert_allclose(mc.per_run["rmse_late_bias"][1], summ["rmse_late_bias"], rtol=1e-12)
@@ -398,8 +427,11 @@ def test_reproduce_end_to_end(tmp_path, capsys):
 
     js, png = tmp_path / "r.json", tmp_path / "r.png"
     study = studies.get("nlio-case3")
-    cfg = study.config(duration=1.0, observers=("NLIO-FG",),
-                       windows=(("transient", 0.0, 0.5), ("steady", 0.5, 1.0), ("burst", 0.2, 0.4)))
+    cfg = study.config(
+        duration=1.0,
+        observers=("NLIO-FG",),
+        windows=(("transient", 0.0, 0.5), ("steady", 0.5, 1.0), ("burst", 0.2, 0.4)),
+    )
     d = studies.reproduce(study, cfg, runs=2, chunk=2, json_path=str(js), plot_path=str(png), quiet=True)
     out = capsys.readouterr().out
     assert "MAEs of attitude, case3" in out and "burst window" in out and "ours (2)" in out

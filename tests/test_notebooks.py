@@ -6,6 +6,7 @@ code cells of the .ipynb are exec'd in order in one namespace, in the notebooks 
 ``JAXATT_NOTEBOOK_QUICK=1``, ``MPLBACKEND=Agg`` and ``JAXATT_FIGURE_DIR`` pointing to a temporary folder. The
 notebook's ``RESULTS`` dict comes back as JSON. The BROAD notebook is skipped when the data are absent.
 """
+
 import json
 import os
 import subprocess
@@ -41,10 +42,20 @@ def execute(name: str, tmp_path: Path, broad_dir: Path = BROAD_DIR):
     """Run notebook ``name`` headless; returns (RESULTS, figure dir, stdout)."""
     fig_dir = tmp_path / "figures"
     results = tmp_path / "results.json"
-    env = dict(os.environ, MPLBACKEND="Agg", JAXATT_NOTEBOOK_QUICK="1", JAXATT_FIGURE_DIR=str(fig_dir),
-               JAXATT_BROAD_DIR=str(broad_dir))
-    proc = subprocess.run([sys.executable, str(BUILD), "--execute", str(NB / f"{name}.ipynb"), "--results",
-                           str(results)], env=env, capture_output=True, text=True, timeout=900)
+    env = dict(
+        os.environ,
+        MPLBACKEND="Agg",
+        JAXATT_NOTEBOOK_QUICK="1",
+        JAXATT_FIGURE_DIR=str(fig_dir),
+        JAXATT_BROAD_DIR=str(broad_dir),
+    )
+    proc = subprocess.run(
+        [sys.executable, str(BUILD), "--execute", str(NB / f"{name}.ipynb"), "--results", str(results)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0, f"{name} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}"
     payload = json.loads(results.read_text())
     print(f"{name}: {payload['wall_s']:.1f} s")
@@ -167,8 +178,15 @@ def test_api_reference_builds_deterministically():
     assert a.returncode == 0, a.stderr
     b = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert a.stdout == b.stdout
-    for name in ("## jaxatt.montecarlo", "#### `monte_carlo(", "## jaxatt.observers.batista_ges",
-                 "#### `Params` (NamedTuple)", "## jaxatt.plot", "#### `euler_trace(", "## jaxatt.so3"):
+    for name in (
+        "## jaxatt.montecarlo",
+        "#### `monte_carlo(",
+        "## jaxatt.observers.batista_ges",
+        "#### `Params` (NamedTuple)",
+        "## jaxatt.plot",
+        "#### `euler_trace(",
+        "## jaxatt.so3",
+    ):
         assert name in a.stdout, name
     assert " at 0x" not in a.stdout
 
@@ -217,8 +235,11 @@ def test_plot_helpers_write_figures(tmp_path):
     assert ax.get_yscale() == "log" and ax.get_ylabel() == "angle error (deg)"
     fig = plot.euler_error_plot(one, mc, t_range=(10.0, 90.0))
     assert [a.get_ylabel() for a in fig.axes] == ["roll error (deg)", "pitch error (deg)", "yaw error (deg)"]
-    hist = [{"step": 0, "val_loss": 10.0}, {"step": 1, "train_loss": 8.0}, {"step": 2, "train_loss": 5.0,
-                                                                           "val_loss": 4.0}]
+    hist = [
+        {"step": 0, "val_loss": 10.0},
+        {"step": 1, "train_loss": 8.0},
+        {"step": 2, "train_loss": 5.0, "val_loss": 4.0},
+    ]
     ax = plot.tuning_curves(hist)
     assert len(ax.lines) == 3  # train, held-out, best marker
     ax = plot.tuning_curves({"train_loss": [3.0, 2.0, 1.0]})
@@ -226,7 +247,12 @@ def test_plot_helpers_write_figures(tmp_path):
     ax = plot.comparison_plot({"a": 1.0, "b": 3.0}, {"a": 1.1, "b": 1.0, "c": 2.0})
     assert len(ax.patches) == 2  # c has no value of ours
     trace = {"t": t, "angle_error_deg": runs[0], "norm_x": runs[0] * 100}
-    path = plot.convergence_figure(trace, str(tmp_path / "conv.png"), transient_s=50.0, steady_from_s=60.0,
-                                   mc_traces={"t": mc["t"], "angle_error_deg": runs, "norm_x": runs * 100})
+    path = plot.convergence_figure(
+        trace,
+        str(tmp_path / "conv.png"),
+        transient_s=50.0,
+        steady_from_s=60.0,
+        mc_traces={"t": mc["t"], "angle_error_deg": runs, "norm_x": runs * 100},
+    )
     assert Path(path).stat().st_size > 10_000
     plt.close("all")

@@ -1,5 +1,6 @@
 """jaxatt's GES observer (batista_ges) against the independent plain-numpy reference in
 benchmarks/numpy_reference.py, on the same noisy samples, in float64."""
+
 import pathlib
 import sys
 
@@ -11,8 +12,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxatt import montecarlo  # noqa: E402
-from jaxatt.studies import batista_ges as exp  # noqa: E402
 from jaxatt.observers import batista_ges as ges  # noqa: E402
+from jaxatt.studies import batista_ges as exp  # noqa: E402
 from jaxatt.types import ImuSample  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -27,10 +28,15 @@ def _scenario_samples(cfg: exp.Config, seconds: float, seed: int, rate_amp=(5.0,
     """Noisy Section-IV samples from the numpy simulator (truth by Magnus steps, numpy noise x ``noise``)."""
     n = int(round(seconds / DT))
     t, gyr, mag, r_true = npref.simulate_numpy(
-        n, DT, rate=npref.batista_rates(rate_amp), ref_nav=np.asarray(cfg.reference_nT, float),
+        n,
+        DT,
+        rate=npref.batista_rates(rate_amp),
+        ref_nav=np.asarray(cfg.reference_nT, float),
         earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)),
-        gyro_arw=noise * exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz), mag_noise=noise * cfg.mag_noise_nT,
-        rng=np.random.default_rng(seed))
+        gyro_arw=noise * exp.imu.arw_deg_per_hour_to_rad(cfg.gyro_arw_deg_h_rthz),
+        mag_noise=noise * cfg.mag_noise_nT,
+        rng=np.random.default_rng(seed),
+    )
     return t, gyr, mag, r_true
 
 
@@ -46,8 +52,15 @@ def _np_estimate0(p, t0, gyr0, mag0, x1_init="first_sample"):
     k = npref.coefficients(p.ref_nav, p.earth_rate_nav)
     r_hat = s.z2.reshape(3, 3)
     close = bool(np.linalg.norm(r_hat.T @ r_hat - np.eye(3), "fro") <= float(p.epsilon) and np.linalg.det(r_hat) > 0)
-    return {"t": s.t, "x1": s.x1, "x2": s.x2, "earth_rate": k["we1"] * s.x1 + k["we2"] * np.cross(s.x1, s.x2),
-            "r_hat": r_hat, "r": s.r_f, "projected": close}
+    return {
+        "t": s.t,
+        "x1": s.x1,
+        "x2": s.x2,
+        "earth_rate": k["we1"] * s.x1 + k["we2"] * np.cross(s.x1, s.x2),
+        "r_hat": r_hat,
+        "r": s.r_f,
+        "projected": close,
+    }
 
 
 def _with_estimate0(est0, steps):
@@ -90,12 +103,17 @@ def test_coefficients_match_paper_formulas():
     c2 = npref.c2_matrix(p.ref_nav, p.earth_rate_nav)
     np.testing.assert_allclose(np.asarray(ges.c2_matrix(p.ref_nav, p.earth_rate_nav)), c2, rtol=1e-15)
     # C2^-1 = M^-1 (x) I3
-    np.testing.assert_allclose(np.kron(np.asarray(c.m_inv), np.eye(3)), np.linalg.inv(c2), rtol=1e-9,
-                               atol=1e-9 * np.max(np.abs(np.linalg.inv(c2))))
+    np.testing.assert_allclose(
+        np.kron(np.asarray(c.m_inv), np.eye(3)),
+        np.linalg.inv(c2),
+        rtol=1e-9,
+        atol=1e-9 * np.max(np.abs(np.linalg.inv(c2))),
+    )
     # Proposition 1: omega_E = We1 m + We2 m x (m x omega_E) for any attitude
     m, w = np.asarray(p.ref_nav), np.asarray(p.earth_rate_nav)
-    np.testing.assert_allclose(k["we1"] * m + k["we2"] * np.cross(m, np.cross(m, w)), w, rtol=1e-12,
-                               atol=1e-12 * np.linalg.norm(w))
+    np.testing.assert_allclose(
+        k["we1"] * m + k["we2"] * np.cross(m, np.cross(m, w)), w, rtol=1e-12, atol=1e-12 * np.linalg.norm(w)
+    )
 
 
 def test_paper_start_projection_then_propagation():
@@ -127,8 +145,11 @@ def test_fast_gain_both_switches_and_schedule():
     seven gain intervals within 30 s): projection -> propagation -> projection."""
     cfg = exp.Config()
     p = exp.params(cfg)
-    p = p._replace(gain_z=0.3 * jnp.eye(9), switch_times=jnp.asarray(ges.TABLE1_SWITCH_TIMES) / 25.0,
-                   x2_0=jnp.asarray(_true_x2_0(cfg)))
+    p = p._replace(
+        gain_z=0.3 * jnp.eye(9),
+        switch_times=jnp.asarray(ges.TABLE1_SWITCH_TIMES) / 25.0,
+        x2_0=jnp.asarray(_true_x2_0(cfg)),
+    )
     t, gyr, mag, r_true = _scenario_samples(cfg, 30.0, seed=3, noise=0.01)
     out_j, out_n = _run_both(cfg, p, t, gyr, mag)
     _compare(out_j, out_n)
@@ -160,14 +181,31 @@ def test_fused_simulation_matches_numpy_loop():
     """monte_carlo.simulate (truth + sensors + observer in one scan), noise-free, against the numpy fused loop."""
     cfg = exp.Config(noise_scale=0.0)
     p = exp.params(cfg)
-    trace_fn = lambda truth, out, errors, angle: {"t": truth.t, "r_true": truth.r, "x1": out.x1, "x2": out.x2,  # noqa
-                                                  "r_hat": out.r_hat, "r": out.r}
-    _, tr, _ = montecarlo.simulate(exp.scenario(cfg), exp.observer(cfg), p, duration=10.0, dt=DT,
-                                   errors_fn=exp.errors, trace_fn=trace_fn)
+
+    def trace_fn(truth, out, errors, angle):
+        return {
+            "t": truth.t,
+            "r_true": truth.r,
+            "x1": out.x1,
+            "x2": out.x2,  # noqa
+            "r_hat": out.r_hat,
+            "r": out.r,
+        }
+
+    _, tr, _ = montecarlo.simulate(
+        exp.scenario(cfg), exp.observer(cfg), p, duration=10.0, dt=DT, errors_fn=exp.errors, trace_fn=trace_fn
+    )
     _, _, rec = npref.simulate_and_observe(
-        1000, DT, p, rate=npref.batista_rates(), ref_nav=np.asarray(cfg.reference_nT, float),
-        earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)), gyro_arw=0.0, mag_noise=0.0,
-        record=True)
+        1000,
+        DT,
+        p,
+        rate=npref.batista_rates(),
+        ref_nav=np.asarray(cfg.reference_nT, float),
+        earth_rate_nav=np.asarray(exp.earth.earth_rate_ned(cfg.latitude_deg)),
+        gyro_arw=0.0,
+        mag_noise=0.0,
+        record=True,
+    )
     # the trace starts at estimate 0 (t = 0, R(0) = I, first sample noise-free: m(0) = I_m); rec holds the steps
     est0 = _np_estimate0(p, 0.0, np.zeros(3), np.asarray(cfg.reference_nT, float))
     rec = [(0.0, np.eye(3), est0)] + rec

@@ -1,5 +1,6 @@
 """Constrained parametrizations (jaxatt.fitting.parametrize) and the gains file (jaxatt.fitting.gainsfile): every theta
 gives a valid gain, round trips are exact, masks freeze exactly, gradients are finite. No simulation: fast."""
+
 import json
 from typing import NamedTuple
 
@@ -231,8 +232,9 @@ def test_refine_schedule_keeps_the_gains_as_functions_of_time(name, make):
         b = np.asarray(getattr(q, field))[np.sum(t[:, None] >= np.asarray(q.switch_times), axis=1)]
         np.testing.assert_array_equal(a, b)
     if name == "batista-ges":  # the observer's own schedule lookup agrees
-        np.testing.assert_array_equal(np.asarray(ges_obs._schedule(p, jnp.asarray(t))),
-                                      np.asarray(ges_obs._schedule(q, jnp.asarray(t))))
+        np.testing.assert_array_equal(
+            np.asarray(ges_obs._schedule(p, jnp.asarray(t))), np.asarray(ges_obs._schedule(q, jnp.asarray(t)))
+        )
         ges_obs.check_params(q)
     else:
         so3_obs.check_params(q)

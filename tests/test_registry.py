@@ -1,6 +1,7 @@
 """The observer registry: every name resolves to the entry its module declares, every entry's defaults pass its own
 check, its declared gains are fields of its Params with a usable constraint, it has a docs page, and the gradient of
 a loss through a whole recorded run with respect to its tuned gains matches central finite differences."""
+
 from pathlib import Path
 
 import jax

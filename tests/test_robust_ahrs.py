@@ -4,12 +4,11 @@ gradients through the gates, missing samples, the front door, and a real BROAD t
 import jax
 import jax.numpy as jnp
 import numpy as np
+from broad_data import DATA, need_data  # noqa: E402
 
 from jaxatt import so3
 from jaxatt.observers import robust_ahrs as ra
 from jaxatt.types import ImuSample
-
-from broad_data import DATA, need_data  # noqa: E402
 
 DEG = np.pi / 180
 G = 9.81
@@ -28,15 +27,26 @@ def qexp_np(w, dt):
 def qmul_np(a, b):
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def qmat_np(q):
     w, x, y, z = np.moveaxis(np.asarray(q), -1, 0)
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def simulate(duration=60.0, rate=100.0, bias=(0.0, 0.0, 0.0), seed=0, amp=0.6):
@@ -106,7 +116,7 @@ def test_converges_from_large_errors_noise_free():
     assert err[int(30 / dt)] < 2.0
     # 150 deg -> below 0.1 deg. The bias along the vertical is learnt only from the inclination corrections as the
     # sensor turns (heading corrections do not feed the bias), so the last 0.05 deg take minutes.
-    assert err[-int(10 / dt):].max() < 0.1
+    assert err[-int(10 / dt) :].max() < 0.1
     assert np.abs(np.asarray(out.bias[-1]) - bias).max() < 3e-4  # bias learnt to 0.02 deg/s
 
 
@@ -153,9 +163,9 @@ def test_gradients_finite_through_gates():
     q, gyr, acc, mag, dt = simulate(duration=4.0)
     n = len(gyr)
     mag = mag.copy()
-    mag[n // 2:] += np.array([8.0, -4.0, 3.0])  # partly gated: thresholds get gradients
+    mag[n // 2 :] += np.array([8.0, -4.0, 3.0])  # partly gated: thresholds get gradients
     acc = acc.copy()
-    acc[n // 3: n // 3 + 20] += np.array([3.0, 0.0, 2.0])
+    acc[n // 3 : n // 3 + 20] += np.array([3.0, 0.0, 2.0])
     q_t = jnp.asarray(q)
     obs = ra.make_observer()
     samples = ImuSample(jnp.arange(n) * dt, jnp.asarray(gyr), jnp.asarray(acc), jnp.asarray(mag))
@@ -198,8 +208,9 @@ def test_missing_samples_are_handled():
     md, ar = np.asarray(o2.mag_disturbed), np.asarray(o2.acc_rejected)
     assert md[1000:1100].all() and md[1200] and ar[700:705].all() and ar[900]
     # a missing first sample: identity-free, finite start
-    o3 = run_log(p, np.where(np.arange(n)[:, None] == 0, np.nan, gyr), np.where(np.arange(n)[:, None] == 0, np.nan, acc),
-                 mag, dt)
+    o3 = run_log(
+        p, np.where(np.arange(n)[:, None] == 0, np.nan, gyr), np.where(np.arange(n)[:, None] == 0, np.nan, acc), mag, dt
+    )
     assert np.all(np.isfinite(np.asarray(o3.q)))
 
 
@@ -214,12 +225,16 @@ def test_front_door_matches_the_observer_run():
     o = run_log(p, gyr, acc, mag, dt)
     est = jaxatt.filter("robust", gyr, acc, mag, dt=dt, params=p, hold="zoh")
     assert est.quat.dtype == np.float64 and est.frame == "ENU"
-    np.testing.assert_allclose(est.quat[0], np.asarray(ra.make_observer().output(p, ra.make_observer().init(
-        p, ImuSample(0.0, gyr[0], acc[0], mag[0]))).q), atol=1e-15)
+    np.testing.assert_allclose(
+        est.quat[0],
+        np.asarray(ra.make_observer().output(p, ra.make_observer().init(p, ImuSample(0.0, gyr[0], acc[0], mag[0]))).q),
+        atol=1e-15,
+    )
     assert np.abs(est.quat[1:] - np.asarray(o.q)[:-1]).max() < 1e-12
     assert set(est.outputs) >= {"bias", "mag_disturbed", "rest"}
-    est32 = jaxatt.filter("robust", gyr.astype(np.float32), acc.astype(np.float32), mag.astype(np.float32), dt=dt,
-                          params=p, hold="zoh")
+    est32 = jaxatt.filter(
+        "robust", gyr.astype(np.float32), acc.astype(np.float32), mag.astype(np.float32), dt=dt, params=p, hold="zoh"
+    )
     assert est32.quat.dtype == np.float32
     assert angle_deg(est32.quat[1:], np.asarray(o.q)[:-1]).max() < 1e-3
 

@@ -1,6 +1,7 @@
 """Scale-out (jaxatt.sharding): Monte Carlo and tuning losses with the runs split over 2 CPU devices
 (XLA_FLAGS=--xla_force_host_platform_device_count=2, in a subprocess: the flag must be set before JAX starts)
 equal the single-device results; the in-scan progress reports reach the injected reporter."""
+
 import json
 import os
 import subprocess
@@ -49,8 +50,8 @@ SCRIPT = textwrap.dedent(
     out["loss"] = [l2, l1]
     out["aux_rel"] = float(np.max(np.abs(np.asarray(a2["window_angle_deg"]) - np.asarray(a1["window_angle_deg"]))))
     gl2, gl1 = jax.tree_util.tree_leaves(g2), jax.tree_util.tree_leaves(g1)
-    out["grad_rel"] = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / (np.max(np.abs(np.asarray(b))) + 1e-300))
-                          for a, b in zip(gl2, gl1) if np.size(b))
+    out["grad_rel"] = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))
+                                / (np.max(np.abs(np.asarray(b))) + 1e-300)) for a, b in zip(gl2, gl1) if np.size(b))
     out["grad_nonzero"] = sum(float(np.max(np.abs(np.asarray(b)))) > 0 for b in gl1)
     try:
         f2(scn, p, montecarlo.run_keys(0, range(3)))
@@ -69,7 +70,7 @@ def _run_two_devices():
     r = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-4000:]
     line = next(l for l in r.stdout.splitlines() if l.startswith("RESULT"))
-    return json.loads(line[len("RESULT"):])
+    return json.loads(line[len("RESULT") :])
 
 
 def test_sharded_monte_carlo_and_gradient_equal_single_device():
@@ -96,8 +97,18 @@ def test_progress_reporter_single_device():
 
     cfg = E.Config(duration=25.0)
     seen = []
-    res = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), runs=3, chunk=2,
-                                 duration=25.0, dt=cfg.dt, errors_fn=E.errors, progress=seen.append, devices=1)
+    res = montecarlo.monte_carlo(
+        E.scenario(cfg),
+        E.observer(cfg),
+        E.params(cfg),
+        runs=3,
+        chunk=2,
+        duration=25.0,
+        dt=cfg.dt,
+        errors_fn=E.errors,
+        progress=seen.append,
+        devices=1,
+    )
     assert res.complete and len(res.run_indices) == 3
     done = [s["run_steps_done"] for s in seen]
     # 3 blocks (1000, 1000, 500 steps) per chunk + one report per chunk end, two chunks

@@ -1,4 +1,5 @@
 """Properties of jaxatt.so3 checked against independent numpy references (float64, see conftest)."""
+
 import itertools
 
 import jax
@@ -71,6 +72,7 @@ def np_polar_rotation(m):
 
 def np_quat_to_matrix(q):
     """Rotation matrix of a unit (w,x,y,z) quaternion via v' = q v q* written with numpy Hamilton products."""
+
     def hprod(p, q):
         pw, pv, qw, qv = p[0], p[1:], q[0], q[1:]
         return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + np.cross(pv, qv)])
@@ -224,7 +226,7 @@ def test_matrix_quat_roundtrip(rng):
         assert _same_up_to_sign(a, b, 1e-14), (a, b)
     np.testing.assert_allclose(np.asarray(J.quat_to_matrix(jnp.asarray(q2))), r, atol=1e-14)
     # traces really were very negative for the near-pi group
-    tr = np.trace(r[300:300 + len(near_pi)], axis1=1, axis2=2)
+    tr = np.trace(r[300 : 300 + len(near_pi)], axis1=1, axis2=2)
     assert np.all(tr < -0.99)
 
 
@@ -446,8 +448,12 @@ def test_gradients_at_matrix_inputs_finite():
         lambda r: jnp.sum(w * J.nearest_rotation(r)),
         lambda r: sum(jnp.sum(a) for a in J.matrix_to_euler_zyx(r)),
     ]
-    mats = [np.eye(3), np_rot_axis_angle(AXES[0], PI), np_rot_axis_angle(AXES[3], PI),
-            np_rot_axis_angle(AXES[4], PI - 1e-6)]
+    mats = [
+        np.eye(3),
+        np_rot_axis_angle(AXES[0], PI),
+        np_rot_axis_angle(AXES[3], PI),
+        np_rot_axis_angle(AXES[4], PI - 1e-6),
+    ]
     mats = jnp.asarray(np.stack(mats))
     for f in fns:
         gv = np.asarray(jax.jit(jax.vmap(jax.grad(f)))(mats))
@@ -469,9 +475,7 @@ def test_gradient_of_angle_matches_analytic():
             assert abs(d - 1.0) < 1e-6, (th, ax, d)
 
 
-@pytest.mark.parametrize(
-    "fname", ["exp", "log", "nearest_rotation", "angle_error", "euler", "quat"]
-)
+@pytest.mark.parametrize("fname", ["exp", "log", "nearest_rotation", "angle_error", "euler", "quat"])
 def test_jacfwd_equals_jacrev(fname):
     ref = jnp.asarray(np_rot_axis_angle(unit([1, -1, 2]), 0.4))
     w = jnp.asarray(_W)
@@ -577,7 +581,7 @@ def test_batched_shapes_equal_per_element(rng, shape):
         args = build(pj, qj, mj, r)
         out = np.asarray(f(*args))  # broadcasting over leading axes
         assert out.shape[: len(shape)] == shape, name
-        flat_args = [np.asarray(a).reshape((n,) + a.shape[len(shape):]) for a in args]
+        flat_args = [np.asarray(a).reshape((n,) + a.shape[len(shape) :]) for a in args]
         per = np.stack([np.asarray(f(*[jnp.asarray(a[i]) for a in flat_args])) for i in range(n)])
         np.testing.assert_allclose(out.reshape(per.shape), per, atol=1e-13, err_msg=name)
         # jax.vmap over the flattened batch gives the same as broadcasting

@@ -7,6 +7,7 @@ with the same static settings per observer, so each (observer, checkpoint) pair 
 whole module (three gradient programs, two forward programs); params (switch times, initial estimate, gains)
 change freely without compiling again.
 """
+
 import json
 import math
 from typing import Any, NamedTuple
@@ -40,8 +41,15 @@ def problem(name, checkpoint=CKPT, duration=DURATION):
     s = studies.get(name).setup(duration=duration)
     (ss, se), (ts, te) = s.loss_windows["steady"], s.loss_windows["transient"]
     spec = L.loss_spec(s.loss_kind, steady_start=ss, steady_end=se, transient_start=ts, transient_end=te)
-    f = L.make_loss_fn(s.observer, duration=s.duration, dt=s.dt, spec=spec, hold=s.hold, checkpoint=checkpoint,
-                       init_params=s.init_params)
+    f = L.make_loss_fn(
+        s.observer,
+        duration=s.duration,
+        dt=s.dt,
+        spec=spec,
+        hold=s.hold,
+        checkpoint=checkpoint,
+        init_params=s.init_params,
+    )
     return Problem(s, spec, f, L.segment_length(int(round(s.duration / s.dt)), checkpoint))
 
 
@@ -62,6 +70,7 @@ def so3_params(base):
 
 def value_and_grad(prob, bound, theta=None, keys=KEYS):
     """(loss, grads, aux) through the eagerly differentiated cached jitted loss (compiled once per problem)."""
+
     def obj(th):
         return prob.loss_fn(prob.setup.scenario, bound.constrain(th), keys)
 
@@ -132,8 +141,18 @@ def test_same_runs_as_monte_carlo(ges):
     prob, bound, _, _, aux = ges  # aux of the value-and-grad program
     s = prob.setup
     params = bound.base
-    res = montecarlo.monte_carlo(s.scenario, s.observer, params, runs=2, duration=s.duration, dt=s.dt, seed=0,
-                                 errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold)
+    res = montecarlo.monte_carlo(
+        s.scenario,
+        s.observer,
+        params,
+        runs=2,
+        duration=s.duration,
+        dt=s.dt,
+        seed=0,
+        errors_fn=s.errors_fn,
+        window_start=s.window_start,
+        hold=s.hold,
+    )
     np.testing.assert_allclose(np.asarray(aux["window_angle_deg"][0]), res.per_run["mean_angle_error_deg"], rtol=1e-12)
     np.testing.assert_allclose(np.asarray(aux["final_angle_deg"]), res.per_run["final_angle_error_deg"], rtol=1e-12)
     assert int(aux["window_count"][0]) == round((s.duration - s.window_start) / s.dt) + 1  # both ends
@@ -175,7 +194,9 @@ def test_checkpointing_gives_the_same_gradient(ges):
     loss2, g2, _ = value_and_grad(plain, bound)
     assert loss2 == pytest.approx(loss, rel=1e-13)
     for k in g:
-        np.testing.assert_allclose(np.asarray(g2[k]), np.asarray(g[k]), rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(g[k]))))
+        np.testing.assert_allclose(
+            np.asarray(g2[k]), np.asarray(g[k]), rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(g[k])))
+        )
     errs = fd_check(plain, bound, g2, random_directions(bound.init(), 1, seed=1))
     assert max(errs) < 1e-4, errs
 
@@ -229,10 +250,20 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
     frozen = {"alpha0": False, "alpha1": False, "alpha2": False, "alpha4": False}
     out = tmp_path / "gains.json"
     lines = []
-    kw = dict(train_runs=2, batch=2, val_runs=2, lr=0.8, config={"duration": DURATION}, start=poor, checkpoint=CKPT,
-              masks=frozen, quiet=True)
-    res = fitter.fit(None, None, "batista-so3", steps=8, out=str(out), val_every=2, patience=None,
-                     callback=lines.append, **kw)
+    kw = dict(
+        train_runs=2,
+        batch=2,
+        val_runs=2,
+        lr=0.8,
+        config={"duration": DURATION},
+        start=poor,
+        checkpoint=CKPT,
+        masks=frozen,
+        quiet=True,
+    )
+    res = fitter.fit(
+        None, None, "batista-so3", steps=8, out=str(out), val_every=2, patience=None, callback=lines.append, **kw
+    )
     assert res.status == "done" and len(lines) == 8
     assert float(res.params.alpha3) > 10 * float(res.start_params.alpha3)
     for f in ("alpha0", "alpha1", "alpha2", "alpha4"):  # frozen
@@ -260,8 +291,9 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
             raise KeyboardInterrupt
 
     out2 = tmp_path / "interrupted.json"
-    res2 = fitter.fit(None, None, "batista-so3", steps=8, out=str(out2), val_every=2, patience=None, callback=stop,
-                      **kw)
+    res2 = fitter.fit(
+        None, None, "batista-so3", steps=8, out=str(out2), val_every=2, patience=None, callback=stop, **kw
+    )
     assert res2.status == "interrupted"
     p2 = json.loads(out2.read_text())
     assert p2["status"] == "interrupted" and p2["best_step"] == res2.best_step == 2
@@ -282,20 +314,37 @@ def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
     p = prob.setup.params
     gains = tmp_path / "g.json"
     decl = registry.get("batista-ges").gains
-    gainsfile.write(str(gains), observer="batista-ges", study="batista-ges", params=p._replace(alpha2=0.5 * p.alpha2),
-                    gains=decl)
+    gainsfile.write(
+        str(gains), observer="batista-ges", study="batista-ges", params=p._replace(alpha2=0.5 * p.alpha2), gains=decl
+    )
     study = studies.get("batista-ges")
     tuned = gainsfile.read_params(str(gains), "batista-ges", base=p)
     out = tmp_path / "eval.json"
-    payload = studies.evaluate(study, tuned, runs=2, seed=0, json_path=str(out), cfg=study.config(duration=DURATION),
-                               gains_source=str(gains), quiet=True)
+    payload = studies.evaluate(
+        study,
+        tuned,
+        runs=2,
+        seed=0,
+        json_path=str(out),
+        cfg=study.config(duration=DURATION),
+        gains_source=str(gains),
+        quiet=True,
+    )
     saved = json.loads(out.read_text())
     assert saved["complete"] and saved["runs_done"] == 2 and saved["gains_path"] == str(gains)
     m = saved["metrics"]["mean_angle_error_deg"]
     assert set(m) == {"mean", "std", "min", "max", "per_run"} and len(m["per_run"]) == 2
-    res = montecarlo.monte_carlo(prob.setup.scenario, prob.setup.observer, p._replace(alpha2=0.5 * p.alpha2), runs=2,
-                                 duration=DURATION, dt=0.01, seed=0, errors_fn=prob.setup.errors_fn,
-                                 window_start=prob.setup.window_start)
+    res = montecarlo.monte_carlo(
+        prob.setup.scenario,
+        prob.setup.observer,
+        p._replace(alpha2=0.5 * p.alpha2),
+        runs=2,
+        duration=DURATION,
+        dt=0.01,
+        seed=0,
+        errors_fn=prob.setup.errors_fn,
+        window_start=prob.setup.window_start,
+    )
     np.testing.assert_allclose(m["per_run"], res.per_run["mean_angle_error_deg"], rtol=1e-12)
     c = saved["comparison"]["mean_angle_error_deg"]
     assert c["ratio"] == pytest.approx(c["tuned"] / c["paper_gains"])
@@ -337,14 +386,23 @@ def test_basis_gradients_are_the_chain_rule_of_the_interval_gradients(ges):
     starts = np.concatenate([[0.0], np.asarray(base.switch_times, float)])
     b1 = np.stack([np.ones_like(starts), starts / starts.max()], 1)
     b2 = np.stack([starts < 3.0, starts >= 3.0, np.log1p(starts)], 1).astype(float)
-    tb = P.for_gains(registry.get("batista-ges").gains, transforms={
-        "alpha1": P.LogBasis(b1), "alpha2": P.LogBasis(b2),
-        "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1))))}).bind(base)
+    tb = P.for_gains(
+        registry.get("batista-ges").gains,
+        transforms={
+            "alpha1": P.LogBasis(b1),
+            "alpha2": P.LogBasis(b2),
+            "gain_z": P.ScaledSPD(np.kron(np.eye(3), np.ones((3, 1)))),
+        },
+    ).bind(base)
     assert tb.n_free() == 2 + 3 + 3
     loss2, g2, _ = value_and_grad(prob, tb)
     assert loss2 == pytest.approx(loss, rel=1e-12)
     for field, b in (("alpha1", b1), ("alpha2", b2)):
-        np.testing.assert_allclose(np.asarray(g2[field]), b.T @ np.asarray(g[field]), rtol=1e-8,
-                                   atol=1e-12 * np.abs(b.T @ np.asarray(g[field])).max())
+        np.testing.assert_allclose(
+            np.asarray(g2[field]),
+            b.T @ np.asarray(g[field]),
+            rtol=1e-8,
+            atol=1e-12 * np.abs(b.T @ np.asarray(g[field])).max(),
+        )
     errs = fd_check(prob, tb, g2, [unit_direction(tb.init(), "gain_z", i) for i in range(3)])
     assert max(errs) < 1e-4, errs

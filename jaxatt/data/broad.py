@@ -30,6 +30,7 @@ subset.
 
 h5py is needed only to read the files: ``pip install "jaxatt[data]"``.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,13 +45,39 @@ import numpy as np
 from .. import engine
 from ..types import ImuSample, Observer
 
-__all__ = ["Trial", "PaddedTrials", "load", "load_trial", "list_trials", "load_trials", "load_trial_info",
-           "trial_groups", "group_trials", "group_of", "resolve_trials", "stratified_folds", "error_angles", "metric_fn", "metric_batch",
-           "broad_errors", "error_angles_jax", "broad_errors_jax", "pad_trials", "batch_item", "score",
-           "METRIC_REDUCER", "ATTRIBUTION", "METRICS", "GROUPS", "ANCHORS"]
+__all__ = [
+    "Trial",
+    "PaddedTrials",
+    "load",
+    "load_trial",
+    "list_trials",
+    "load_trials",
+    "load_trial_info",
+    "trial_groups",
+    "group_trials",
+    "group_of",
+    "resolve_trials",
+    "stratified_folds",
+    "error_angles",
+    "metric_fn",
+    "metric_batch",
+    "broad_errors",
+    "error_angles_jax",
+    "broad_errors_jax",
+    "pad_trials",
+    "batch_item",
+    "score",
+    "METRIC_REDUCER",
+    "ATTRIBUTION",
+    "METRICS",
+    "GROUPS",
+    "ANCHORS",
+]
 
-ATTRIBUTION = ("BROAD dataset: D. Laidig, M. Caruso, A. Cereatti, T. Seel, 'BROAD - A Benchmark for Robust "
-               "Inertial Orientation Estimation', Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0.")
+ATTRIBUTION = (
+    "BROAD dataset: D. Laidig, M. Caruso, A. Cereatti, T. Seel, 'BROAD - A Benchmark for Robust "
+    "Inertial Orientation Estimation', Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0."
+)
 
 #: Names of the three BROAD metrics (RMSE in degrees over the movement samples).
 METRICS = ("total_rmse_deg", "heading_rmse_deg", "inclination_rmse_deg")
@@ -205,7 +232,7 @@ def group_trials(names: Sequence[str], group: str, info: Optional[dict] = None) 
 
 
 def group_of(name: str, info: Optional[dict] = None) -> str:
-    """"disturbed" or "undisturbed" (see :func:`trial_groups`)."""
+    """ "disturbed" or "undisturbed" (see :func:`trial_groups`)."""
     return "disturbed" if "disturbed" in trial_groups(name, info) else "undisturbed"
 
 
@@ -402,8 +429,15 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
         mov.append(np.concatenate([tr.movement, np.zeros(tmax - n, bool)]))
         mask.append(np.arange(tmax) < n)
     samples = ImuSample(np.stack(ts), np.stack(gyr), np.stack(acc), np.stack(mag))
-    return PaddedTrials(samples, np.stack(mask), np.stack(qt), np.stack(mov), lengths,
-                        tuple(tr.name for tr in trials), np.array([tr.rate_hz for tr in trials], float))
+    return PaddedTrials(
+        samples,
+        np.stack(mask),
+        np.stack(qt),
+        np.stack(mov),
+        lengths,
+        tuple(tr.name for tr in trials),
+        np.array([tr.rate_hz for tr in trials], float),
+    )
 
 
 def step_dt(rate_hz, dtype):
@@ -422,9 +456,11 @@ def batch_item(padded: PaddedTrials, dtype) -> dict:
     qt = np.where(finite[..., None], qt, np.array([1.0, 0.0, 0.0, 0.0]))
     use = padded.movement & padded.mask & finite
     hi = jnp.result_type(float)
-    return {"samples": jax.tree_util.tree_map(jnp.asarray, padded.samples),
-            "dt": jnp.asarray(step_dt(padded.rate_hz, dtype)),
-            "truth": {"q": jnp.asarray(qt, hi), "use": jnp.asarray(use)}}
+    return {
+        "samples": jax.tree_util.tree_map(jnp.asarray, padded.samples),
+        "dt": jnp.asarray(step_dt(padded.rate_hz, dtype)),
+        "truth": {"q": jnp.asarray(qt, hi), "use": jnp.asarray(use)},
+    }
 
 
 def _sq_errors(q_est, q_true):
@@ -458,16 +494,18 @@ def _metric_finish(acc):
 METRIC_REDUCER = engine.Reducer(_metric_init, _metric_update, _metric_finish)
 
 
-def metric_batch(observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None,
-                 step_remat: bool = False):
+def metric_batch(
+    observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None, step_remat: bool = False
+):
     """(``fn(params, item) -> {metric: (B,) RMSE deg}``, item): the BROAD metric of ``observer`` over a batch item
     of padded trials (rows may be selected: ``item[i]`` for a minibatch), and the item of ``trials``. Pure JAX in
     the params; ``step_remat`` rematerialises each step in the reverse pass (memory: one state per step and trial)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     padded = pad_trials(trials)
     n_steps = int(padded.samples.t.shape[1]) - 1
-    fn = engine.compiled(observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype,
-                         step_remat=step_remat)
+    fn = engine.compiled(
+        observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype, step_remat=step_remat
+    )
     return (lambda params, item: fn(None, params, item).summary), batch_item(padded, dtype)
 
 
@@ -478,7 +516,9 @@ def metric_fn(observer: Observer, trials: Sequence[Trial], *, hold: str = "next"
     return lambda params: fn(params, item)
 
 
-def score(observer: Observer, params, trials: Sequence[Trial], *, hold: str = "next", dtype=None) -> Dict[str, Dict[str, float]]:
+def score(
+    observer: Observer, params, trials: Sequence[Trial], *, hold: str = "next", dtype=None
+) -> Dict[str, Dict[str, float]]:
     """BROAD metric of ``observer`` on each trial: {trial name: {metric: RMSE deg}}, all trials in one vmapped scan.
 
     The observer's estimate k (T estimates for T samples: estimate 0 is ``init``'s from the first sample,
@@ -489,4 +529,3 @@ def score(observer: Observer, params, trials: Sequence[Trial], *, hold: str = "n
     """
     summary = jax.device_get(metric_fn(observer, trials, hold=hold, dtype=dtype)(params))
     return {tr.name: {m: float(summary[m][i]) for m in METRICS} for i, tr in enumerate(trials)}
-

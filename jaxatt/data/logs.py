@@ -16,6 +16,7 @@ float64 log survives a round trip exactly.
 NPZ: arrays ``t`` (N,), ``gyr`` (N, 3), optional ``acc`` (N, 3), ``mag`` (N, 3), ``quat_true`` (N, 4). Loaded
 without pickle.
 """
+
 from __future__ import annotations
 
 import csv
@@ -45,6 +46,7 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     (N, 3); ``acc`` / ``mag`` (when present) are not (N, 3); ``quat_true`` (when present) is not (N, 4).
     NaN in gyr / acc / mag / quat_true is allowed (a missing reading); +-inf is not.
     """
+
     def arr(name, v, shape_tail):
         try:
             a = np.asarray(v, dtype=np.float64)
@@ -122,8 +124,9 @@ def load_csv(path, *, with_truth: bool = False):
             raise ValueError(f"{src}: empty file (a header line is required)") from None
         rows = [r for r in reader if r and any(c.strip() for c in r)]
     if any(header) and all(_is_number(h) for h in header if h):
-        raise ValueError(f"{src}: the first line must be a header naming the columns "
-                         f"(t, gyr_x, gyr_y, gyr_z, ...), got numbers")
+        raise ValueError(
+            f"{src}: the first line must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
+        )
     if len(set(header)) != len(header):
         raise ValueError(f"{src}: duplicate column names in the header: {header}")
     idx = {h: i for i, h in enumerate(header)}
@@ -150,8 +153,9 @@ def load_csv(path, *, with_truth: bool = False):
                     raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
                 a[k, j] = _parse_float(r[i], k + 2, c, src)
         data[name] = a[:, 0] if name == "t" else a
-    samples, q = check_log(ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")),
-                           data.get("quat_true"), source=src)
+    samples, q = check_log(
+        ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")), data.get("quat_true"), source=src
+    )
     return (samples, q) if with_truth else samples
 
 

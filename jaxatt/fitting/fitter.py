@@ -16,6 +16,7 @@ order, optimizer state and best-so-far are restored, so the result equals an uni
 larger ``steps`` a finished fit continues). A finished gains file is never replaced by a new fit unless
 ``overwrite=True``.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,8 +32,16 @@ from .. import engine, io
 from . import gainsfile
 from . import parametrize as P
 
-__all__ = ["fit", "FitResult", "optimize", "OptimizeResult", "Sampler", "print_progress", "recorded_objective",
-           "simulated_objective"]
+__all__ = [
+    "fit",
+    "FitResult",
+    "optimize",
+    "OptimizeResult",
+    "Sampler",
+    "print_progress",
+    "recorded_objective",
+    "simulated_objective",
+]
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -55,7 +64,7 @@ class Sampler:
             return np.arange(self.n)
         if len(self.order) < self.batch:
             self.order = self.order + self.rng.permutation(self.n).tolist()
-        idx, self.order = self.order[: self.batch], self.order[self.batch:]
+        idx, self.order = self.order[: self.batch], self.order[self.batch :]
         return np.asarray(idx)
 
     def state(self) -> dict:
@@ -87,13 +96,22 @@ class OptimizeResult(NamedTuple):
 def print_progress(info: dict, file=None) -> None:
     """Default progress display: one line per step (training loss, validation when computed, gradient norm)."""
     file = file or sys.stderr
-    val = "" if info.get("val_loss") is None else (
-        f"  val {info['val_loss']:.5g}{' *' if info.get('improved') else ''} (best {info['best_val']:.5g} @ step "
-        f"{info['best_step']})")
+    val = (
+        ""
+        if info.get("val_loss") is None
+        else (
+            f"  val {info['val_loss']:.5g}{' *' if info.get('improved') else ''} (best {info['best_val']:.5g} @ step "
+            f"{info['best_step']})"
+        )
+    )
     ang = info.get("train_metric")
     angs = "" if ang is None else f" ({ang:.4g} {info.get('metric_unit', '')})"
-    print(f"step {info['step']:4d}/{info['steps']}  train {info['train_loss']:.5g}{angs}  |g| "
-          f"{info['grad_norm']:.3g}{val}  {info['step_s']:.1f} s/step", file=file, flush=True)
+    print(
+        f"step {info['step']:4d}/{info['steps']}  train {info['train_loss']:.5g}{angs}  |g| "
+        f"{info['grad_norm']:.3g}{val}  {info['step_s']:.1f} s/step",
+        file=file,
+        flush=True,
+    )
 
 
 def _global_norm(tree) -> float:
@@ -109,12 +127,27 @@ def _metric(aux) -> Optional[float]:
     return None if m is None else float(m)
 
 
-def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler: Sampler, take: Callable,
-             val_batch=None, val_objective: Optional[Callable] = None, val_every: int = 5, patience: Optional[int] = None, min_delta: float = 0.0,
-             lr: float = 0.05, clip: Optional[float] = 1.0, schedule: str = "constant",
-             project: Optional[Callable] = None, callback: Optional[Callable[[dict], None]] = None,
-             on_save: Optional[Callable[[OptimizeResult], None]] = None, resume: Optional[dict] = None,
-             metric_unit: str = "") -> OptimizeResult:
+def optimize(
+    objective: Callable,
+    theta0: Dict[str, Any],
+    *,
+    steps: int,
+    sampler: Sampler,
+    take: Callable,
+    val_batch=None,
+    val_objective: Optional[Callable] = None,
+    val_every: int = 5,
+    patience: Optional[int] = None,
+    min_delta: float = 0.0,
+    lr: float = 0.05,
+    clip: Optional[float] = 1.0,
+    schedule: str = "constant",
+    project: Optional[Callable] = None,
+    callback: Optional[Callable[[dict], None]] = None,
+    on_save: Optional[Callable[[OptimizeResult], None]] = None,
+    resume: Optional[dict] = None,
+    metric_unit: str = "",
+) -> OptimizeResult:
     """Minimise ``objective(theta, batch) -> (loss, aux)`` with Adam (global-norm clipping ``clip``; learning rate
     ``lr``, constant or ``schedule="cosine"`` decay to lr / 10 over ``steps``).
 
@@ -151,7 +184,8 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
         if len(saved) != len(leaves):
             raise ValueError("resume: the saved optimizer state does not match these settings")
         opt_state = jax.tree_util.tree_unflatten(
-            treedef, [jnp.asarray(v, getattr(leaf, "dtype", None)) for v, leaf in zip(saved, leaves)])
+            treedef, [jnp.asarray(v, getattr(leaf, "dtype", None)) for v, leaf in zip(saved, leaves)]
+        )
         best_theta = {k: jnp.asarray(v, dtype) for k, v in resume["best_theta"].items()}
         best_val, best_step, start_val = resume["best_val"], resume["best_step"], resume["start_val"]
         bad, n_nonfinite = resume["bad"], resume["n_nonfinite"]
@@ -166,12 +200,20 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
         return float(loss), _metric(aux)
 
     def result(status):
-        state = {"step": (history[-1]["step"] if history else 0), "theta": _to_lists(theta),
-                 "opt_state": [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(opt_state)],
-                 "best_theta": _to_lists(best_theta), "best_val": best_val, "best_step": best_step,
-                 "start_val": start_val, "bad": bad, "n_nonfinite": n_nonfinite,
-                 "best_train": best_train if math.isfinite(best_train) else None,
-                 "history": history, "sampler": sampler.state()}
+        state = {
+            "step": (history[-1]["step"] if history else 0),
+            "theta": _to_lists(theta),
+            "opt_state": [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(opt_state)],
+            "best_theta": _to_lists(best_theta),
+            "best_val": best_val,
+            "best_step": best_step,
+            "start_val": start_val,
+            "bad": bad,
+            "n_nonfinite": n_nonfinite,
+            "best_train": best_train if math.isfinite(best_train) else None,
+            "history": history,
+            "sampler": sampler.state(),
+        }
         return OptimizeResult(best_theta, theta, best_step, best_val, start_val, history, status, state)
 
     status = "done"
@@ -179,16 +221,21 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
         if val_fn is not None and not resume:
             start_val, start_metric = validate(theta)
             best_val = start_val
-            history.append({"step": 0, "val_loss": start_val, "val_metric": start_metric,
-                            "elapsed_s": time.perf_counter() - t_start})
+            history.append(
+                {
+                    "step": 0,
+                    "val_loss": start_val,
+                    "val_metric": start_metric,
+                    "elapsed_s": time.perf_counter() - t_start,
+                }
+            )
         for step in range(first, steps + 1):
             t0 = time.perf_counter()
             (loss, aux), grads = vg(theta, take(sampler.next()))
             loss = float(loss)
             gnorm = _global_norm(grads)
             finite = math.isfinite(loss) and math.isfinite(gnorm)
-            rec = {"step": step, "train_loss": loss, "train_metric": _metric(aux), "grad_norm": gnorm,
-                   "finite": finite}
+            rec = {"step": step, "train_loss": loss, "train_metric": _metric(aux), "grad_norm": gnorm, "finite": finite}
             if val_fn is None and finite and loss < best_train:
                 best_train, best_theta, best_step = loss, theta, step - 1
             if finite:
@@ -210,8 +257,17 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
             rec.update(step_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - t_start)
             history.append(rec)
             if callback is not None:
-                callback({**rec, "steps": steps, "val_loss": rec.get("val_loss"), "best_val": best_val,
-                          "best_step": best_step, "improved": improved, "metric_unit": metric_unit})
+                callback(
+                    {
+                        **rec,
+                        "steps": steps,
+                        "val_loss": rec.get("val_loss"),
+                        "best_val": best_val,
+                        "best_step": best_step,
+                        "improved": improved,
+                        "metric_unit": metric_unit,
+                    }
+                )
             stop = None
             if n_nonfinite >= 3:
                 stop = "non-finite"
@@ -219,8 +275,9 @@ def optimize(objective: Callable, theta0: Dict[str, Any], *, steps: int, sampler
                 stop = "early-stopped"
             if stop is None and step == steps and val_fn is None:
                 # the last update has not been evaluated yet
-                (last, _), _ = vg(theta, take(np.arange(sampler.n)) if sampler.batch == sampler.n
-                                  else take(sampler.next()))
+                (last, _), _ = vg(
+                    theta, take(np.arange(sampler.n)) if sampler.batch == sampler.n else take(sampler.next())
+                )
                 if math.isfinite(float(last)) and float(last) < best_train:
                     best_train, best_theta, best_step = float(last), theta, step
             if on_save is not None:
@@ -244,8 +301,9 @@ def _broad_weights(groups: Sequence[str]) -> np.ndarray:
     return np.array([1.0 / (len(present) * groups.count(g)) for g in groups])
 
 
-def recorded_objective(observer, bound: P.BoundParametrization, trials, *, hold: str = "next", dtype=None,
-                       step_remat: bool = True):
+def recorded_objective(
+    observer, bound: P.BoundParametrization, trials, *, hold: str = "next", dtype=None, step_remat: bool = True
+):
     """(objective(theta, batch), n_trials, take(indices) -> batch): the group-weighted mean per-trial total RMSE
     (deg, BROAD metric) of ``observer`` on ``trials``, through the whole scan (each step rematerialised in the
     reverse pass, so memory is one state per step and trial). ``aux["metric"]``: the same mean."""
@@ -267,16 +325,26 @@ def recorded_objective(observer, bound: P.BoundParametrization, trials, *, hold:
     return objective, len(trials), take
 
 
-def simulated_objective(setup, bound: P.BoundParametrization, spec, *, dtype=None, checkpoint="auto",
-                        step_remat=None, devices=None):
+def simulated_objective(
+    setup, bound: P.BoundParametrization, spec, *, dtype=None, checkpoint="auto", step_remat=None, devices=None
+):
     """objective(theta, keys): the :class:`~jaxatt.fitting.losses.LossSpec` loss of the study set-up's observer over the
     runs of ``keys`` (:func:`jaxatt.fitting.losses.make_loss_fn`). ``aux["metric"]``: the mean angle error (deg) over
     the first window."""
     from . import losses
 
-    f = losses.make_loss_fn(setup.observer, duration=setup.duration, dt=setup.dt, spec=spec, hold=setup.hold,
-                            dtype=dtype, checkpoint=checkpoint, init_params=setup.init_params,
-                            step_remat=step_remat, devices=devices)
+    f = losses.make_loss_fn(
+        setup.observer,
+        duration=setup.duration,
+        dt=setup.dt,
+        spec=spec,
+        hold=setup.hold,
+        dtype=dtype,
+        checkpoint=checkpoint,
+        init_params=setup.init_params,
+        step_remat=step_remat,
+        devices=devices,
+    )
 
     def objective(theta, keys):
         loss, aux = f(setup.scenario, bound.constrain(theta), keys)
@@ -305,8 +373,9 @@ class FitResult(NamedTuple):
 
 def _parametrization(entry, params, *, tune, freeze, masks, method, transforms):
     if entry is not None:
-        return P.for_gains(entry.gains, tune=tune, freeze=freeze, masks=masks, method=method,
-                           transforms=transforms).bind(params)
+        return P.for_gains(
+            entry.gains, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms
+        ).bind(params)
     p = P.for_params(params, tune=tune)
     if freeze:
         p = p.freeze(*freeze)
@@ -333,16 +402,43 @@ def _start(params, start, entry):
     raise ValueError(f"start must be a gains-file path, a dict of gains or a callable, got {type(start).__name__}")
 
 
-def fit(observer=None, params=None, data=None, *, steps: int = 100, lr: float = 0.05, tune: Optional[Sequence[str]] = None,
-        freeze: Sequence[str] = (), masks: Optional[Mapping[str, Any]] = None, method: Optional[str] = None,
-        transforms: Optional[Mapping[str, P.Transform]] = None, start=None, batch: Optional[int] = None,
-        val=None, val_every: int = 5, patience: Optional[int] = None, clip: Optional[float] = 1.0,
-        schedule: Optional[str] = None, seed: int = 0, out: Optional[str] = None, resume: bool = False,
-        overwrite: bool = False, callback: Optional[Callable[[dict], None]] = None, quiet: bool = True,
-        dtype=None, hold: Optional[str] = None, loss: Optional[str] = None, transient_weight: float = 0.0,
-        config: Optional[Mapping[str, Any]] = None, train_runs: int = 32, val_runs: int = 16,
-        refine_schedule: Sequence[float] = (), checkpoint="auto", step_remat: Optional[bool] = None,
-        devices=None) -> FitResult:
+def fit(
+    observer=None,
+    params=None,
+    data=None,
+    *,
+    steps: int = 100,
+    lr: float = 0.05,
+    tune: Optional[Sequence[str]] = None,
+    freeze: Sequence[str] = (),
+    masks: Optional[Mapping[str, Any]] = None,
+    method: Optional[str] = None,
+    transforms: Optional[Mapping[str, P.Transform]] = None,
+    start=None,
+    batch: Optional[int] = None,
+    val=None,
+    val_every: int = 5,
+    patience: Optional[int] = None,
+    clip: Optional[float] = 1.0,
+    schedule: Optional[str] = None,
+    seed: int = 0,
+    out: Optional[str] = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    callback: Optional[Callable[[dict], None]] = None,
+    quiet: bool = True,
+    dtype=None,
+    hold: Optional[str] = None,
+    loss: Optional[str] = None,
+    transient_weight: float = 0.0,
+    config: Optional[Mapping[str, Any]] = None,
+    train_runs: int = 32,
+    val_runs: int = 16,
+    refine_schedule: Sequence[float] = (),
+    checkpoint="auto",
+    step_remat: Optional[bool] = None,
+    devices=None,
+) -> FitResult:
     """Learn gains by gradient descent through the whole scan.
 
     Args:
@@ -377,58 +473,156 @@ def fit(observer=None, params=None, data=None, *, steps: int = 100, lr: float = 
     if out_path is not None and out_path.exists():
         previous = gainsfile.read(out_path)
         if not resume and not overwrite:
-            raise ValueError(f"out {out}: exists (status {previous.get('status')!r}); pass resume=True to continue it or "
-                             "overwrite=True to replace it")
+            raise ValueError(
+                f"out {out}: exists (status {previous.get('status')!r}); pass resume=True to continue it or "
+                "overwrite=True to replace it"
+            )
     if resume and previous is None:
         raise ValueError(f"resume: no gains file at {out!r} to continue")
     if isinstance(data, (str,)) or (data is not None and hasattr(data, "setup") and hasattr(data, "observers")):
-        return _fit_study(data, observer, params, steps=steps, lr=lr, tune=tune, freeze=freeze, masks=masks,
-                          method=method, transforms=transforms, start=start, batch=8 if batch is None else batch,
-                          val_every=val_every, patience=patience, clip=clip, schedule=schedule or "constant",
-                          seed=seed, out_path=out_path, previous=previous if resume else None, callback=callback,
-                          quiet=quiet, dtype=dtype, loss=loss, transient_weight=transient_weight, config=config,
-                          train_runs=train_runs, val_runs=val_runs, refine_schedule=refine_schedule,
-                          checkpoint=checkpoint, step_remat=step_remat, devices=devices)
+        return _fit_study(
+            data,
+            observer,
+            params,
+            steps=steps,
+            lr=lr,
+            tune=tune,
+            freeze=freeze,
+            masks=masks,
+            method=method,
+            transforms=transforms,
+            start=start,
+            batch=8 if batch is None else batch,
+            val_every=val_every,
+            patience=patience,
+            clip=clip,
+            schedule=schedule or "constant",
+            seed=seed,
+            out_path=out_path,
+            previous=previous if resume else None,
+            callback=callback,
+            quiet=quiet,
+            dtype=dtype,
+            loss=loss,
+            transient_weight=transient_weight,
+            config=config,
+            train_runs=train_runs,
+            val_runs=val_runs,
+            refine_schedule=refine_schedule,
+            checkpoint=checkpoint,
+            step_remat=step_remat,
+            devices=devices,
+        )
     from ..api import compute_dtype, resolve_observer
     from ..data import broad as B
 
     trials = list(data) if data is not None else []
     if not trials or not all(isinstance(t, B.Trial) for t in trials):
-        raise ValueError("data must be a non-empty list of jaxatt.data.broad.Trial (jaxatt.data.broad.load) or a "
-                         "study name")
+        raise ValueError(
+            "data must be a non-empty list of jaxatt.data.broad.Trial (jaxatt.data.broad.load) or a study name"
+        )
     val_trials = list(val) if val is not None else []
     if val_trials and not all(isinstance(t, B.Trial) for t in val_trials):
         raise ValueError("val must be a list of jaxatt.data.broad.Trial")
     dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
-    p0 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating)
-                                else a, _start(p0, start, entry))
+    p0 = jax.tree_util.tree_map(
+        lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a,
+        _start(p0, start, entry),
+    )
     if entry is not None and entry.check is not None:
         entry.check(p0)
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
-    objective, n, take = recorded_objective(obs, bound, trials, hold=hold, dtype=dt_,
-                                            step_remat=True if step_remat is None else step_remat)
+    objective, n, take = recorded_objective(
+        obs, bound, trials, hold=hold, dtype=dt_, step_remat=True if step_remat is None else step_remat
+    )
     val_batch = val_objective = None
     if val_trials:
         val_objective, vn, vtake = recorded_objective(obs, bound, val_trials, hold=hold, dtype=dt_)
         val_batch = vtake(np.arange(vn))
 
-    settings = {"data": "trials", "train_trials": [t.name for t in trials], "val_trials": [t.name for t in val_trials],
-                "steps": int(steps), "lr": lr, "clip": clip, "schedule": schedule or "cosine", "batch": batch,
-                "val_every": val_every, "patience": patience, "seed": seed, "hold": hold, "dtype": str(np.dtype(dt_)),
-                "loss": "group-weighted mean per-trial total RMSE (deg), BROAD metric",
-                "tunable": {f: tr.describe() for f, tr in bound.transforms.items()}, "n_tunable": bound.n_free()}
-    return _run(name, entry, obs, p0, bound, objective, Sampler(n, batch, seed), take, val_batch, settings,
-                val_objective=val_objective, steps=steps, lr=lr, clip=clip, schedule=schedule or "cosine", val_every=val_every, patience=patience,
-                out_path=out_path, previous=previous if resume else None, callback=callback, quiet=quiet,
-                study=None, metric_unit="deg")
+    settings = {
+        "data": "trials",
+        "train_trials": [t.name for t in trials],
+        "val_trials": [t.name for t in val_trials],
+        "steps": int(steps),
+        "lr": lr,
+        "clip": clip,
+        "schedule": schedule or "cosine",
+        "batch": batch,
+        "val_every": val_every,
+        "patience": patience,
+        "seed": seed,
+        "hold": hold,
+        "dtype": str(np.dtype(dt_)),
+        "loss": "group-weighted mean per-trial total RMSE (deg), BROAD metric",
+        "tunable": {f: tr.describe() for f, tr in bound.transforms.items()},
+        "n_tunable": bound.n_free(),
+    }
+    return _run(
+        name,
+        entry,
+        obs,
+        p0,
+        bound,
+        objective,
+        Sampler(n, batch, seed),
+        take,
+        val_batch,
+        settings,
+        val_objective=val_objective,
+        steps=steps,
+        lr=lr,
+        clip=clip,
+        schedule=schedule or "cosine",
+        val_every=val_every,
+        patience=patience,
+        out_path=out_path,
+        previous=previous if resume else None,
+        callback=callback,
+        quiet=quiet,
+        study=None,
+        metric_unit="deg",
+    )
 
 
-def _fit_study(study, observer, params, *, steps, lr, tune, freeze, masks, method, transforms, start, batch,
-               val_every, patience, clip, schedule, seed, out_path, previous, callback, quiet, dtype, loss,
-               transient_weight, config, train_runs, val_runs, refine_schedule, checkpoint, step_remat, devices):
-    from .. import montecarlo, schedule as sched, studies
+def _fit_study(
+    study,
+    observer,
+    params,
+    *,
+    steps,
+    lr,
+    tune,
+    freeze,
+    masks,
+    method,
+    transforms,
+    start,
+    batch,
+    val_every,
+    patience,
+    clip,
+    schedule,
+    seed,
+    out_path,
+    previous,
+    callback,
+    quiet,
+    dtype,
+    loss,
+    transient_weight,
+    config,
+    train_runs,
+    val_runs,
+    refine_schedule,
+    checkpoint,
+    step_remat,
+    devices,
+):
+    from .. import montecarlo, studies
+    from .. import schedule as sched
     from ..observers import registry
     from . import losses
 
@@ -448,39 +642,113 @@ def _fit_study(study, observer, params, *, steps, lr, tune, freeze, masks, metho
             raise ValueError(f"refine_schedule: {entry.name} has no piecewise-constant gain schedule")
         times = np.asarray(list(refine_schedule), float)
         if not np.all(np.isfinite(times)) or np.any(times <= 0) or np.any(times >= s.duration):
-            raise ValueError(f"refine_schedule: switch times must lie inside the run (0, {s.duration}) s, got "
-                             f"{list(refine_schedule)}")
+            raise ValueError(
+                f"refine_schedule: switch times must lie inside the run (0, {s.duration}) s, got "
+                f"{list(refine_schedule)}"
+            )
         p0 = sched.refine(p0, times, fields)
     st.check_params(p0)
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     (ss, se), (ts, te) = s.loss_windows["steady"], s.loss_windows["transient"]
-    spec = losses.loss_spec(loss or s.loss_kind, steady_start=ss, steady_end=se, transient_start=ts,
-                            transient_end=te, w_transient=transient_weight)
-    objective = simulated_objective(s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat,
-                                    devices=devices)
+    spec = losses.loss_spec(
+        loss or s.loss_kind,
+        steady_start=ss,
+        steady_end=se,
+        transient_start=ts,
+        transient_end=te,
+        w_transient=transient_weight,
+    )
+    objective = simulated_objective(
+        s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat, devices=devices
+    )
     train_keys = montecarlo.run_keys(seed, list(range(train_runs)))
     val_keys = montecarlo.run_keys(seed, list(range(train_runs, train_runs + val_runs))) if val_runs else None
     n_steps = int(round(s.duration / s.dt))
-    settings = {"data": "study", "study": st.name, "config": io.to_jsonable(s.config._asdict()), "steps": int(steps),
-                "train_runs": train_runs, "train_run_indices": [0, train_runs], "val_runs": val_runs,
-                "val_run_indices": [train_runs, train_runs + val_runs], "seed": seed, "batch_runs": batch,
-                "val_every": val_every, "patience": patience, "lr": lr, "clip": clip, "schedule": schedule,
-                "loss": spec.describe(), "duration_s": s.duration, "dt_s": s.dt, "steps_per_run": n_steps,
-                "checkpoint_segment": losses.segment_length(n_steps, checkpoint),
-                "tunable": {f: tr.describe() for f, tr in bound.transforms.items()},
-                "masks": {f: m.tolist() for f, m in bound.masks.items()}, "n_tunable": bound.n_free()}
+    settings = {
+        "data": "study",
+        "study": st.name,
+        "config": io.to_jsonable(s.config._asdict()),
+        "steps": int(steps),
+        "train_runs": train_runs,
+        "train_run_indices": [0, train_runs],
+        "val_runs": val_runs,
+        "val_run_indices": [train_runs, train_runs + val_runs],
+        "seed": seed,
+        "batch_runs": batch,
+        "val_every": val_every,
+        "patience": patience,
+        "lr": lr,
+        "clip": clip,
+        "schedule": schedule,
+        "loss": spec.describe(),
+        "duration_s": s.duration,
+        "dt_s": s.dt,
+        "steps_per_run": n_steps,
+        "checkpoint_segment": losses.segment_length(n_steps, checkpoint),
+        "tunable": {f: tr.describe() for f, tr in bound.transforms.items()},
+        "masks": {f: m.tolist() for f, m in bound.masks.items()},
+        "n_tunable": bound.n_free(),
+    }
     if not quiet:
-        print(f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; {train_runs} training "
-              f"runs (batch {batch}), {val_runs} validation runs, {s.duration:g} s at {1 / s.dt:g} Hz; loss "
-              f"{spec.describe()['kind']}; the first step compiles", file=sys.stderr, flush=True)
-    return _run(entry.name, entry, s.observer, p0, bound, objective, Sampler(train_runs, batch, seed),
-                lambda idx: train_keys[np.asarray(idx)], val_keys, settings, steps=steps, lr=lr, clip=clip,
-                schedule=schedule, val_every=val_every, patience=patience, out_path=out_path, previous=previous,
-                callback=callback, quiet=quiet, study=st.name, metric_unit="deg")
+        print(
+            f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; {train_runs} training "
+            f"runs (batch {batch}), {val_runs} validation runs, {s.duration:g} s at {1 / s.dt:g} Hz; loss "
+            f"{spec.describe()['kind']}; the first step compiles",
+            file=sys.stderr,
+            flush=True,
+        )
+    return _run(
+        entry.name,
+        entry,
+        s.observer,
+        p0,
+        bound,
+        objective,
+        Sampler(train_runs, batch, seed),
+        lambda idx: train_keys[np.asarray(idx)],
+        val_keys,
+        settings,
+        steps=steps,
+        lr=lr,
+        clip=clip,
+        schedule=schedule,
+        val_every=val_every,
+        patience=patience,
+        out_path=out_path,
+        previous=previous,
+        callback=callback,
+        quiet=quiet,
+        study=st.name,
+        metric_unit="deg",
+    )
 
 
-def _run(name, entry, obs, p0, bound, objective, sampler, take, val_batch, settings, *, steps, lr, clip, schedule,
-         val_every, patience, out_path, previous, callback, quiet, study, metric_unit, val_objective=None):
+def _run(
+    name,
+    entry,
+    obs,
+    p0,
+    bound,
+    objective,
+    sampler,
+    take,
+    val_batch,
+    settings,
+    *,
+    steps,
+    lr,
+    clip,
+    schedule,
+    val_every,
+    patience,
+    out_path,
+    previous,
+    callback,
+    quiet,
+    study,
+    metric_unit,
+    val_objective=None,
+):
     """The loop, the gains file after every step, the result."""
     gains = entry.gains if entry is not None else None
     fields = None if entry is not None else list(bound.transforms)
@@ -489,12 +757,24 @@ def _run(name, entry, obs, p0, bound, objective, sampler, take, val_batch, setti
     resume_state = None
     if previous is not None:
         old = previous.get("settings", {})
-        keys = ["data", "study", "train_trials", "train_runs", "seed", "lr", "batch", "batch_runs", "loss", "n_tunable",
-                "schedule"] + (["steps"] if settings.get("schedule") == "cosine" else [])
+        keys = [
+            "data",
+            "study",
+            "train_trials",
+            "train_runs",
+            "seed",
+            "lr",
+            "batch",
+            "batch_runs",
+            "loss",
+            "n_tunable",
+            "schedule",
+        ] + (["steps"] if settings.get("schedule") == "cosine" else [])
         for k in keys:
             if old.get(k) != settings.get(k):
-                raise ValueError(f"resume: setting {k!r} differs from the saved fit ({old.get(k)!r} vs "
-                                 f"{settings.get(k)!r})")
+                raise ValueError(
+                    f"resume: setting {k!r} differs from the saved fit ({old.get(k)!r} vs {settings.get(k)!r})"
+                )
         resume_state = previous.get("resume")
         if not resume_state:
             raise ValueError(f"resume: {out_path} holds no resume state")
@@ -505,17 +785,45 @@ def _run(name, entry, obs, p0, bound, objective, sampler, take, val_batch, setti
         if out_path is None:
             return
         best = bound.constrain(res.best_theta)
-        gainsfile.write(out_path, observer=name, params=best, gains=gains, fields=fields, study=study,
-                        status=res.status, best_step=res.best_step, best_loss=res.best_val if res.best_val is not None
-                        else (res.resume.get("best_train")), start_loss=res.start_val, start=start_gains,
-                        settings=settings, history=res.history, provenance=env, resume=res.resume)
+        gainsfile.write(
+            out_path,
+            observer=name,
+            params=best,
+            gains=gains,
+            fields=fields,
+            study=study,
+            status=res.status,
+            best_step=res.best_step,
+            best_loss=res.best_val if res.best_val is not None else (res.resume.get("best_train")),
+            start_loss=res.start_val,
+            start=start_gains,
+            settings=settings,
+            history=res.history,
+            provenance=env,
+            resume=res.resume,
+        )
 
     cb = callback if callback is not None else (None if quiet else print_progress)
     theta_dtype = jnp.result_type(*[jnp.asarray(getattr(p0, f)).dtype for f in bound.transforms])
-    res = optimize(objective, bound.init(theta_dtype), steps=steps, sampler=sampler, take=take, val_batch=val_batch,
-                   val_objective=val_objective, val_every=val_every, patience=patience, lr=lr,
-                   clip=clip, schedule=schedule, project=bound.clip, callback=cb, on_save=on_save,
-                   resume=resume_state, metric_unit=metric_unit)
+    res = optimize(
+        objective,
+        bound.init(theta_dtype),
+        steps=steps,
+        sampler=sampler,
+        take=take,
+        val_batch=val_batch,
+        val_objective=val_objective,
+        val_every=val_every,
+        patience=patience,
+        lr=lr,
+        clip=clip,
+        schedule=schedule,
+        project=bound.clip,
+        callback=cb,
+        on_save=on_save,
+        resume=resume_state,
+        metric_unit=metric_unit,
+    )
     if steps == 0 or (not res.history and out_path is not None):
         on_save(res)
     best = bound.constrain(res.best_theta)
@@ -526,5 +834,6 @@ def _run(name, entry, obs, p0, bound, objective, sampler, take, val_batch, setti
         if best_loss is not None:
             msg += f"; best loss {best_loss:.5g} (step {res.best_step})"
         print(msg + (f"; gains written to {out_path}" if out_path else ""), file=sys.stderr, flush=True)
-    return FitResult(best, p0, res.history, res.status, res.best_step, best_loss, res.start_val,
-                     str(out_path) if out_path else None)
+    return FitResult(
+        best, p0, res.history, res.status, res.best_step, best_loss, res.start_val, str(out_path) if out_path else None
+    )

@@ -16,6 +16,7 @@ rate may carry ``as_rate``. Values are numbers or nested lists (matrices). Files
 (``"jaxatt-gains/1"``: ``{"experiment", "gains": {field: {"value"}}}`` from ``jaxatt tune`` or ``{"observer",
 "gains": {field: number}}`` from ``jaxatt broad-tune``) are read too.
 """
+
 from __future__ import annotations
 
 from importlib import resources
@@ -26,19 +27,38 @@ import numpy as np
 
 from .. import io
 
-__all__ = ["FORMAT", "gains_to_dict", "write", "read", "apply", "read_params", "load_shipped", "shipped_path",
-           "STUDY_OBSERVER"]
+__all__ = [
+    "FORMAT",
+    "gains_to_dict",
+    "write",
+    "read",
+    "apply",
+    "read_params",
+    "load_shipped",
+    "shipped_path",
+    "STUDY_OBSERVER",
+]
 
 FORMAT = "jaxatt-gains/2"
 _OLD = "jaxatt-gains/1"
 
 #: The observer tuned in each study of jaxatt 0.1's gains files (``"experiment"`` key).
 #: keys of jaxatt 0.1's tune files -> this format's
-_RENAMED = {"tuning": "settings", "environment": "provenance", "start_gains": "start", "best_val_loss": "best_loss",
-            "start_val_loss": "start_loss"}
+_RENAMED = {
+    "tuning": "settings",
+    "environment": "provenance",
+    "start_gains": "start",
+    "best_val_loss": "best_loss",
+    "start_val_loss": "start_loss",
+}
 
-STUDY_OBSERVER = {"batista-ges": "batista-ges", "batista-so3": "batista-so3", "nlio-case1": "nlio-fg",
-                  "nlio-case2": "nlio-fg", "nlio-case3": "nlio-fg"}
+STUDY_OBSERVER = {
+    "batista-ges": "batista-ges",
+    "batista-so3": "batista-so3",
+    "nlio-case1": "nlio-fg",
+    "nlio-case2": "nlio-fg",
+    "nlio-case3": "nlio-fg",
+}
 
 
 def _tolist(a):
@@ -61,7 +81,7 @@ def gains_to_dict(params, gains: Optional[Sequence[Any]] = None, fields: Optiona
     values = _fields(params)
     out = {}
     if gains is None:
-        for f in (fields or values):
+        for f in fields or values:
             v = values[f]
             if v is not None and np.issubdtype(np.asarray(v).dtype, np.floating):
                 out[f] = {"value": _tolist(v), "unit": "?", "constraint": "positive", "doc": ""}
@@ -81,12 +101,19 @@ def gains_to_dict(params, gains: Optional[Sequence[Any]] = None, fields: Optiona
     return out
 
 
-def write(path, *, observer: str, params, gains: Optional[Sequence[Any]] = None, study: Optional[str] = None,
-          fields: Optional[Sequence[str]] = None, **extra) -> None:
+def write(
+    path,
+    *,
+    observer: str,
+    params,
+    gains: Optional[Sequence[Any]] = None,
+    study: Optional[str] = None,
+    fields: Optional[Sequence[str]] = None,
+    **extra,
+) -> None:
     """Write a gains file atomically (:func:`jaxatt.io.write_json`); ``extra`` keys (start, status, settings,
     history, provenance, resume, ...) are added as they are."""
-    payload = {"format": FORMAT, "observer": observer, "study": study,
-               "gains": gains_to_dict(params, gains, fields)}
+    payload = {"format": FORMAT, "observer": observer, "study": study, "gains": gains_to_dict(params, gains, fields)}
     payload.update(extra)
     io.write_json(path, payload)
 

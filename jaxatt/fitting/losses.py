@@ -18,6 +18,7 @@ The loss on recorded trials (the BROAD metric) is :data:`jaxatt.data.broad.METRI
 
 Conventions: rotations map body to reference (v_ref = R v_body); angles in degrees (``_deg``); times in s.
 """
+
 from __future__ import annotations
 
 import functools
@@ -34,8 +35,7 @@ from .. import metrics as M
 from .. import sharding as _sharding
 from ..types import Observer
 
-__all__ = ["LossSpec", "loss_spec", "POINTWISE", "POINTWISE_UNITS", "loss_reducer", "make_loss_fn",
-           "segment_length"]
+__all__ = ["LossSpec", "loss_spec", "POINTWISE", "POINTWISE_UNITS", "loss_reducer", "make_loss_fn", "segment_length"]
 
 
 def _check_dt(dt) -> float:
@@ -92,14 +92,26 @@ class LossSpec(NamedTuple):
 
     def describe(self) -> dict:
         kind = self.kind if isinstance(self.kind, str) else getattr(self.kind, "__name__", repr(self.kind))
-        return {"kind": kind, "unit": POINTWISE_UNITS.get(kind, "?"),
-                "windows": [{"name": n, "start_s": s, "end_s": (None if math.isinf(e) else e), "weight": w}
-                            for n, s, e, w in self.windows]}
+        return {
+            "kind": kind,
+            "unit": POINTWISE_UNITS.get(kind, "?"),
+            "windows": [
+                {"name": n, "start_s": s, "end_s": (None if math.isinf(e) else e), "weight": w}
+                for n, s, e, w in self.windows
+            ],
+        }
 
 
-def loss_spec(kind="angle_sq", *, steady_start: float = 0.0, steady_end: float = math.inf, w_steady: float = 1.0,
-              transient_start: float = 0.0, transient_end: Optional[float] = None, w_transient: float = 0.0
-              ) -> LossSpec:
+def loss_spec(
+    kind="angle_sq",
+    *,
+    steady_start: float = 0.0,
+    steady_end: float = math.inf,
+    w_steady: float = 1.0,
+    transient_start: float = 0.0,
+    transient_end: Optional[float] = None,
+    w_transient: float = 0.0,
+) -> LossSpec:
     """A :class:`LossSpec` with a steady-state window [steady_start, steady_end) of weight ``w_steady`` and,
     when ``w_transient`` > 0, a transient window [transient_start, transient_end) (default end: steady_start)."""
     if not (isinstance(kind, str) and kind in POINTWISE) and not callable(kind):
@@ -164,18 +176,31 @@ def _loss_post(weights: tuple):
         win_loss = (acc.loss / cnt).T  # (n_windows, B)
         win_angle = (acc.angle / cnt).T
         loss = jnp.sum(jnp.asarray(weights, win_loss.dtype) * jnp.mean(win_loss, axis=-1))
-        aux = {"window_loss": win_loss, "window_angle_deg": win_angle, "final_angle_deg": acc.last_angle,
-               "window_count": acc.count[0], "final_state": res.state}
+        aux = {
+            "window_loss": win_loss,
+            "window_angle_deg": win_angle,
+            "final_angle_deg": acc.last_angle,
+            "window_count": acc.count[0],
+            "final_state": res.state,
+        }
         return loss, aux
 
     return post
 
 
 #: Partition specs of the loss outputs when the runs are split over devices (loss averaged by pmean).
-_LOSS_OUT_SPECS = engine.Static((PartitionSpec(), {"window_loss": PartitionSpec(None, _sharding.AXIS),
-                                     "window_angle_deg": PartitionSpec(None, _sharding.AXIS),
-                                     "final_angle_deg": PartitionSpec(_sharding.AXIS),
-                                     "window_count": PartitionSpec(), "final_state": PartitionSpec(_sharding.AXIS)}))
+_LOSS_OUT_SPECS = engine.Static(
+    (
+        PartitionSpec(),
+        {
+            "window_loss": PartitionSpec(None, _sharding.AXIS),
+            "window_angle_deg": PartitionSpec(None, _sharding.AXIS),
+            "final_angle_deg": PartitionSpec(_sharding.AXIS),
+            "window_count": PartitionSpec(),
+            "final_state": PartitionSpec(_sharding.AXIS),
+        },
+    )
+)
 
 
 def _pmean_loss(out):
@@ -188,9 +213,20 @@ def _dtypes(dtype):
     return obs, jnp.result_type(float)
 
 
-def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSpec, hold: str = "zoh",
-                 dtype=None, checkpoint: Union[str, int, bool, None] = "auto", init_params=None,
-                 step_remat: Optional[bool] = None, jit: bool = True, devices=1):
+def make_loss_fn(
+    observer: Observer,
+    *,
+    duration: float,
+    dt: float,
+    spec: LossSpec,
+    hold: str = "zoh",
+    dtype=None,
+    checkpoint: Union[str, int, bool, None] = "auto",
+    init_params=None,
+    step_remat: Optional[bool] = None,
+    jit: bool = True,
+    devices=1,
+):
     """``loss(scenario, params, keys) -> (loss, aux)`` for a batch of run keys (:func:`montecarlo.run_keys`).
 
     The simulation is :func:`jaxatt.montecarlo.monte_carlo`'s (same truth, sensor samples, noise stream,
@@ -218,8 +254,14 @@ def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSp
     segment = segment_length(n_steps, checkpoint)
     mesh = _sharding.seed_mesh(devices)
     source = engine.Simulated(n_steps, dt, sim_dtype, init_params)
-    kw = dict(post=_loss_post(tuple(float(w[3]) for w in spec.windows)), hold=hold, obs_dtype=obs_dtype,
-              segment=segment, step_remat=bool(segment) if step_remat is None else bool(step_remat), keep_state=True)
+    kw = dict(
+        post=_loss_post(tuple(float(w[3]) for w in spec.windows)),
+        hold=hold,
+        obs_dtype=obs_dtype,
+        segment=segment,
+        step_remat=bool(segment) if step_remat is None else bool(step_remat),
+        keep_state=True,
+    )
     if mesh is not None:
         kw.update(out_specs=_LOSS_OUT_SPECS, reduce=_pmean_loss)
     fn = engine.compiled(observer, source, loss_reducer(spec), mesh, **kw)
@@ -235,14 +277,35 @@ def make_loss_fn(observer: Observer, *, duration: float, dt: float, spec: LossSp
     return checked
 
 
-def simulation_loss(scenario, observer: Observer, params, keys, *, duration: float, dt: float,
-                    spec: Optional[LossSpec] = None, hold: str = "zoh", dtype=None, checkpoint="auto",
-                    init_params=None, step_remat: Optional[bool] = None):
+def simulation_loss(
+    scenario,
+    observer: Observer,
+    params,
+    keys,
+    *,
+    duration: float,
+    dt: float,
+    spec: Optional[LossSpec] = None,
+    hold: str = "zoh",
+    dtype=None,
+    checkpoint="auto",
+    init_params=None,
+    step_remat: Optional[bool] = None,
+):
     """(loss, aux) of ``params`` over the runs of ``keys``; ``jax.grad`` of ``lambda p: simulation_loss(...)[0]``
     is the gradient through the whole simulation. See :func:`make_loss_fn`."""
     spec = spec or LossSpec()
-    return make_loss_fn(observer, duration=duration, dt=dt, spec=spec, hold=hold, dtype=dtype,
-                        checkpoint=checkpoint, init_params=init_params, step_remat=step_remat)(scenario, params, keys)
+    return make_loss_fn(
+        observer,
+        duration=duration,
+        dt=dt,
+        spec=spec,
+        hold=hold,
+        dtype=dtype,
+        checkpoint=checkpoint,
+        init_params=init_params,
+        step_remat=step_remat,
+    )(scenario, params, keys)
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ transforms, :func:`for_params` builds a parametrization for any Params of your o
 Conventions: gains keep the units of the observer's Params (SI; the vector-sensor unit of the scenario, nT
 for the Batista papers).
 """
+
 from __future__ import annotations
 
 import abc
@@ -38,11 +39,29 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Transform", "Positive", "Schedule", "SPD", "Bounded", "Identity", "LogBasis", "ScaledSPD",
-           "Parametrization", "BoundParametrization", "from_constraint", "for_gains", "for_params",
-           "schedule_mask", "schedule_mask_from", "refine_schedule", "softplus_inverse"]
+__all__ = [
+    "Transform",
+    "Positive",
+    "Schedule",
+    "SPD",
+    "Bounded",
+    "Identity",
+    "LogBasis",
+    "ScaledSPD",
+    "Parametrization",
+    "BoundParametrization",
+    "from_constraint",
+    "for_gains",
+    "for_params",
+    "schedule_mask",
+    "schedule_mask_from",
+    "refine_schedule",
+    "softplus_inverse",
+]
 
-from ..schedule import mask as schedule_mask, mask_from as schedule_mask_from, refine as refine_schedule  # noqa: E402
+from ..schedule import mask as schedule_mask  # noqa: E402
+from ..schedule import mask_from as schedule_mask_from
+from ..schedule import refine as refine_schedule
 
 
 def softplus_inverse(y):
@@ -360,8 +379,9 @@ class BoundParametrization(NamedTuple):
 
     def n_free(self) -> int:
         """Number of tunable scalars."""
-        return int(sum(int(np.sum(self.masks[f])) if f in self.masks else int(np.size(v))
-                       for f, v in self.theta0.items()))
+        return int(
+            sum(int(np.sum(self.masks[f])) if f in self.masks else int(np.size(v)) for f, v in self.theta0.items())
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -383,8 +403,10 @@ class Parametrization:
         bad = [f for f in fields if f not in self.transforms]
         if bad:
             raise ValueError(f"cannot freeze {bad}: not tunable here (tunable: {sorted(self.transforms)})")
-        return Parametrization({k: v for k, v in self.transforms.items() if k not in fields},
-                               {k: v for k, v in self.masks.items() if k not in fields})
+        return Parametrization(
+            {k: v for k, v in self.transforms.items() if k not in fields},
+            {k: v for k, v in self.masks.items() if k not in fields},
+        )
 
     def only(self, *fields: str) -> "Parametrization":
         """A copy where only ``fields`` are tunable."""
@@ -436,16 +458,26 @@ def from_constraint(gain) -> Transform:
     raise ValueError(f"gain {gain.field}: unknown constraint {c!r}")
 
 
-def for_gains(gains: Sequence[Any], *, tune: Optional[Sequence[str]] = None, freeze: Sequence[str] = (),
-              masks: Optional[Mapping[str, Any]] = None, method: Optional[str] = None,
-              transforms: Optional[Mapping[str, Transform]] = None) -> Parametrization:
+def for_gains(
+    gains: Sequence[Any],
+    *,
+    tune: Optional[Sequence[str]] = None,
+    freeze: Sequence[str] = (),
+    masks: Optional[Mapping[str, Any]] = None,
+    method: Optional[str] = None,
+    transforms: Optional[Mapping[str, Transform]] = None,
+) -> Parametrization:
     """The Parametrization of declared gains (:class:`jaxatt.observers.registry.Gain`): those tuned by default, or
     exactly ``tune``; minus ``freeze``; optional ``masks`` (field -> bool array over its unconstrained vector, True =
     tunable), ``method`` ("log" / "softplus") for every positive gain, and ``transforms`` (field -> Transform)
     replacing the map of chosen gains (e.g. a :class:`LogBasis` for a schedule)."""
     known = {g.field: g for g in gains}
-    for label, fields in (("tune", tune or ()), ("freeze", freeze), ("transforms", transforms or {}),
-                          ("masks", masks or {})):
+    for label, fields in (
+        ("tune", tune or ()),
+        ("freeze", freeze),
+        ("transforms", transforms or {}),
+        ("masks", masks or {}),
+    ):
         bad = [f for f in fields if f not in known]
         if bad:
             raise ValueError(f"{label}: {bad} are not gains of this observer (gains: {sorted(known)})")

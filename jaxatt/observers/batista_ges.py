@@ -29,12 +29,14 @@ Readings chosen where the paper is open (also in docs/observers/batista_ges.md):
 * Theorem 3: eps and the norm are not given; we use the Frobenius norm and eps = 0.5, and project only when
   det(R^) > 0 too (a reflection cannot be projected continuously; near convergence det > 0 always, so the
   theorem's conclusions are unchanged). The propagation law uses omega(t), which is not measured; we use its
-  implementable reading gyr - omega_E^. The projection is Newton's polar iteration, exact to rounding inside that region.
+  implementable reading gyr - omega_E^. The projection is Newton's polar iteration, exact to rounding inside that
+  region.
 * The Table-1 schedule is evaluated at the start of each step (switch times are multiples of dt).
 
 Missing samples (NaN in a log): a missing vector sample switches the corrections off for that step (x1^
 stands in for m); a missing gyro sample holds the last valid gyro reading.
 """
+
 from __future__ import annotations
 
 import functools
@@ -49,9 +51,24 @@ from ..integrate import rk4_step
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "Coefficients", "make_observer", "default_params", "gain_from_q",
-           "paper_gain", "coefficients", "check_params", "TABLE1_SWITCH_TIMES", "TABLE1_ALPHA1", "TABLE1_ALPHA2",
-           "lyapunov_block1", "growing_memory_params", "GROWING_MEMORY_TIMES"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "Coefficients",
+    "make_observer",
+    "default_params",
+    "gain_from_q",
+    "paper_gain",
+    "coefficients",
+    "check_params",
+    "TABLE1_SWITCH_TIMES",
+    "TABLE1_ALPHA1",
+    "TABLE1_ALPHA2",
+    "lyapunov_block1",
+    "growing_memory_params",
+    "GROWING_MEMORY_TIMES",
+]
 
 #: Table 1 of batista2019-ges: gains of (15) on [0,60), [60,120), [120,240), [240,300), [300,600), [600,720),
 #: [720, inf) s.
@@ -189,9 +206,16 @@ def default_params(ref_nav, earth_rate_nav, *, r_hat_0=None, epsilon: float = 0.
 GROWING_MEMORY_TIMES = (900.0, 1200.0, 1500.0, 1800.0, 2100.0, 2400.0, 2700.0, 3000.0, 3300.0)
 
 
-def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0, early_scale: float = 0.01,
-                          late_alpha1_scale: float = 0.1, gain_z_scale: float = 8.0,
-                          refine_times: Sequence[float] = GROWING_MEMORY_TIMES) -> Params:
+def growing_memory_params(
+    p: Params,
+    *,
+    k: float = 1.5,
+    grow_from: float = 900.0,
+    early_scale: float = 0.01,
+    late_alpha1_scale: float = 0.1,
+    gain_z_scale: float = 8.0,
+    refine_times: Sequence[float] = GROWING_MEMORY_TIMES,
+) -> Params:
     """``p`` with a growing-memory Earth-rate block: a gain schedule for long runs (an extension of Table 1,
     not the paper's; issue 6, docs/observers/batista_ges.md "Tuning the gains").
 
@@ -207,8 +231,12 @@ def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0
     steady-state (t >= 2400 s) mean angle error by 22.7 %. The memory stops growing at the last of
     ``refine_times``: for longer runs pass switch times that cover the horizon.
     """
-    for name, v in (("k", k), ("early_scale", early_scale), ("late_alpha1_scale", late_alpha1_scale),
-                    ("gain_z_scale", gain_z_scale)):
+    for name, v in (
+        ("k", k),
+        ("early_scale", early_scale),
+        ("late_alpha1_scale", late_alpha1_scale),
+        ("gain_z_scale", gain_z_scale),
+    ):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"growing_memory_params: {name} must be finite and positive, got {v}")
     if not (np.isfinite(grow_from) and grow_from > 0):
@@ -224,16 +252,22 @@ def growing_memory_params(p: Params, *, k: float = 1.5, grow_from: float = 900.0
     a1[grow] = last_a1 * late_alpha1_scale
     a2[grow] = a1[grow] * np.minimum(last_a2 / last_a1, k / starts[grow])
     dtype = jnp.asarray(q.alpha1).dtype
-    return q._replace(alpha1=jnp.asarray(a1, dtype), alpha2=jnp.asarray(a2, dtype),
-                      gain_z=jnp.asarray(q.gain_z) * gain_z_scale)
+    return q._replace(
+        alpha1=jnp.asarray(a1, dtype), alpha2=jnp.asarray(a2, dtype), gain_z=jnp.asarray(q.gain_z) * gain_z_scale
+    )
 
 
 # ------------------------------------------------------------------------------------------------------
 # Validation at the API boundary (concrete arrays only; called by run/monte_carlo/CLI).
 # ------------------------------------------------------------------------------------------------------
-def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3, *, paper: str = "batista2019-ges",
-                     why: str = "the attitude is not observable from this vector and the Earth rate (C2 is "
-                                "singular)") -> None:
+def check_references(
+    ref_nav,
+    earth_rate_nav,
+    min_sin_angle: float = 1e-3,
+    *,
+    paper: str = "batista2019-ges",
+    why: str = "the attitude is not observable from this vector and the Earth rate (C2 is singular)",
+) -> None:
     """Assumption 1 of both Batista et al. (2019) papers: I_m not parallel to I_omega_E (|sin angle| >=
     ``min_sin_angle``); finite, shape (3,)."""
     m = np.asarray(ref_nav, float)
@@ -337,8 +371,7 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         r_hat = p.r_hat_0
         # R_f(t0) must be a rotation (Theorem 3); nearest rotation when R^(0) is not one.
         r_f = so3.nearest_rotation(r_hat)
-        return State(t0, x1, p.x2_0, r_hat, r_f,
-                     jnp.where(jnp.isfinite(gyr), gyr, 0.0), coef)
+        return State(t0, x1, p.x2_0, r_hat, r_f, jnp.where(jnp.isfinite(gyr), gyr, 0.0), coef)
 
     def step(p: Params, s: State, sample, dt):
         if isinstance(sample, Interval):
@@ -382,19 +415,43 @@ def _paper_params(dtype=None) -> Params:
     """Section IV: IGRF-11 field at Lisbon (nT, NED), the Earth's rate there, Table 1 and the paper's Q."""
     from ..sim import earth
 
-    return default_params(earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)),
-                          dtype=dtype)
+    return default_params(
+        earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)), dtype=dtype
+    )
 
 
-ENTRIES = (registry.Entry(
-    name="batista-ges",
-    summary="attitude + Earth rate from a high-grade gyro and ONE vector (GES, R^9 + projection)",
-    reference="Batista, Silvestre, Oliveira 2019 (GES), eqs. (15), (17), (21), Theorem 3",
-    make=make_observer, default_params=_paper_params,
-    gains=(registry.Gain("alpha1", "1/s", "gain of the Earth-rate block, eq. (15), one value per Table-1 interval "
-                         "(switch_times fixed)", "schedule"),
-           registry.Gain("alpha2", "1/s^2", "gain of the Earth-rate block, eq. (15), one value per Table-1 interval "
-                         "(switch_times fixed)", "schedule"),
-           registry.Gain("gain_z", "1/s", "z-space attitude gain G = C2^T Q^-1 C2 of eq. (21), 9x9 SPD acting on "
-                         "z2 = rows of R stacked", "spd")),
-    frame="NED", hold="zoh", needs=("mag",), module="batista_ges", check=check_params, recorded=False),)
+ENTRIES = (
+    registry.Entry(
+        name="batista-ges",
+        summary="attitude + Earth rate from a high-grade gyro and ONE vector (GES, R^9 + projection)",
+        reference="Batista, Silvestre, Oliveira 2019 (GES), eqs. (15), (17), (21), Theorem 3",
+        make=make_observer,
+        default_params=_paper_params,
+        gains=(
+            registry.Gain(
+                "alpha1",
+                "1/s",
+                "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)",
+                "schedule",
+            ),
+            registry.Gain(
+                "alpha2",
+                "1/s^2",
+                "gain of the Earth-rate block, eq. (15), one value per Table-1 interval (switch_times fixed)",
+                "schedule",
+            ),
+            registry.Gain(
+                "gain_z",
+                "1/s",
+                "z-space attitude gain G = C2^T Q^-1 C2 of eq. (21), 9x9 SPD acting on z2 = rows of R stacked",
+                "spd",
+            ),
+        ),
+        frame="NED",
+        hold="zoh",
+        needs=("mag",),
+        module="batista_ges",
+        check=check_params,
+        recorded=False,
+    ),
+)

@@ -43,6 +43,7 @@ Readings chosen (also in docs/observers/batista_so3.md):
 Missing samples (NaN in a log): a missing vector sample is replaced by m^ for that step (the corrections that
 compare m with m^ vanish); a missing gyro sample holds the last valid gyro reading.
 """
+
 from __future__ import annotations
 
 import functools
@@ -57,9 +58,22 @@ from ..integrate import rk4_step, rkmk4_step
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "Coefficients", "make_observer", "default_params", "coefficients",
-           "check_params", "check_references", "lyapunov", "linearization", "TABLE1_SWITCH_TIMES",
-           "TABLE1_ALPHA1_NORMALISED", "TABLE1_ALPHA2"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "Coefficients",
+    "make_observer",
+    "default_params",
+    "coefficients",
+    "check_params",
+    "check_references",
+    "lyapunov",
+    "linearization",
+    "TABLE1_SWITCH_TIMES",
+    "TABLE1_ALPHA1_NORMALISED",
+    "TABLE1_ALPHA2",
+]
 
 #: Table 1 of batista2019-so3: alpha1 |I_m|^2 (1/s) and alpha2 (1/s) on [0,300), [300,420), [420,600),
 #: [600,720), [720, inf) s.
@@ -149,8 +163,11 @@ def default_params(ref_nav, earth_rate_nav, *, r_hat_0=None, v_hat_0=None, dtype
     check_references(m, w)
     mm_ = float(m @ m)
     iv = np.cross(m, np.cross(m, w))
-    r0 = (np.asarray(so3.exp(jnp.asarray([0.0, 0.0, np.deg2rad(179.0)])), float) if r_hat_0 is None
-          else np.asarray(r_hat_0, float))
+    r0 = (
+        np.asarray(so3.exp(jnp.asarray([0.0, 0.0, np.deg2rad(179.0)])), float)
+        if r_hat_0 is None
+        else np.asarray(r_hat_0, float)
+    )
     p = Params(
         ref_nav=m,
         earth_rate_nav=w,
@@ -174,9 +191,13 @@ def check_references(ref_nav, earth_rate_nav, min_sin_angle: float = 1e-3) -> No
     """Assumption 1: I_m not parallel to I_omega_E (|sin angle| >= ``min_sin_angle``); finite, shape (3,)."""
     from .batista_ges import check_references as check
 
-    check(ref_nav, earth_rate_nav, min_sin_angle, paper="batista2019-so3",
-          why="I_v = I_m x (I_m x I_wE) vanishes and the attitude is not observable from this vector and the Earth "
-              "rate")
+    check(
+        ref_nav,
+        earth_rate_nav,
+        min_sin_angle,
+        paper="batista2019-so3",
+        why="I_v = I_m x (I_m x I_wE) vanishes and the attitude is not observable from this vector and the Earth rate",
+    )
 
 
 def check_params(p: Params) -> None:
@@ -193,8 +214,10 @@ def check_params(p: Params) -> None:
             raise ValueError(f"{name} must be a finite array of shape {shape}, got {v.shape}")
     r0 = np.asarray(p.r_hat_0, float)
     if np.linalg.norm(r0.T @ r0 - np.eye(3)) > 1e-6 or np.linalg.det(r0) <= 0:
-        raise ValueError("r_hat_0 must be a rotation matrix (eq. 16 evolves on SO(3)); use "
-                         "jaxatt.so3.nearest_rotation to project one")
+        raise ValueError(
+            "r_hat_0 must be a rotation matrix (eq. 16 evolves on SO(3)); use "
+            "jaxatt.so3.nearest_rotation to project one"
+        )
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -212,8 +235,13 @@ def _rates(p: Params, coef: Coefficients, a1, a2, m_hat, v_hat, r, u: ImuSample)
     rate_m = -(wm + coef.c2 * v_hat + a1 * mxmh)  # m^' = rate_m x m^  (eq. 9, first line)
     dv = -so3.cross(wm - coef.c1 * m, v_hat) + a2 * mxmh - p.alpha0 * jnp.dot(m, v_hat) * m  # eq. 9, 2nd line
     rt = jnp.swapaxes(r, -1, -2)
-    omega_o = (wm - coef.c1 * m + coef.c2 * v_hat + p.alpha3 * so3.cross(m, so3.mv(rt, p.ref_nav))
-               + p.alpha4 * so3.cross(v_hat, so3.mv(rt, coef.iv)))  # eq. (16)
+    omega_o = (
+        wm
+        - coef.c1 * m
+        + coef.c2 * v_hat
+        + p.alpha3 * so3.cross(m, so3.mv(rt, p.ref_nav))
+        + p.alpha4 * so3.cross(v_hat, so3.mv(rt, coef.iv))
+    )  # eq. (16)
     return dv, rate_m, omega_o
 
 
@@ -253,19 +281,22 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         else:
             safe = jnp.where(ok, mag, p.m_hat_0)
             m_hat = safe * (jnp.linalg.norm(p.ref_nav) / jnp.linalg.norm(safe))
-        return State(t0, m_hat, p.v_hat_0, p.r_hat_0,
-                     jnp.where(jnp.isfinite(gyr), gyr, 0.0), jnp.linalg.norm(m_hat), coef)
+        return State(
+            t0, m_hat, p.v_hat_0, p.r_hat_0, jnp.where(jnp.isfinite(gyr), gyr, 0.0), jnp.linalg.norm(m_hat), coef
+        )
 
     def step(p: Params, s: State, sample, dt):
         if isinstance(sample, Interval):
-            u = Interval(_sanitize(_get(sample.start), s.gyr_last, s.m_hat),
-                         _sanitize(_get(sample.end), s.gyr_last, s.m_hat))
+            u = Interval(
+                _sanitize(_get(sample.start), s.gyr_last, s.m_hat), _sanitize(_get(sample.end), s.gyr_last, s.m_hat)
+            )
             t0, gyr_new, m_now = u.start.t, u.end.gyr, u.end.mag
         else:
             u = _sanitize(_get(sample), s.gyr_last, s.m_hat)
             t0, gyr_new, m_now = u.t, u.gyr, u.mag
         a1, a2 = _schedule(p, t0)
         if integrator == "lie":
+
             def f(v_hat, frames, uu):
                 m_hat, r = frames
                 dv, rate_m, omega_o = _rates(p, s.coef, a1, a2, m_hat, v_hat, r, uu)
@@ -277,6 +308,7 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
             r = so3.reorthonormalize(r)
             m_hat = m_hat * (s.m_norm / jnp.linalg.norm(m_hat))
         else:
+
             def f(x, uu):
                 m_hat, v_hat, r = x
                 dv, rate_m, omega_o = _rates(p, s.coef, a1, a2, m_hat, v_hat, r, uu)
@@ -321,8 +353,12 @@ def linearization(ref_nav, earth_rate_nav, alpha0, alpha1, alpha2, alpha3, alpha
     c1, c2 = (w @ m) / mm_, 1.0 / mm_
     iv = np.cross(m, np.cross(m, w))
     sm, sv, eye = np.asarray(so3.skew(jnp.asarray(m))), np.asarray(so3.skew(jnp.asarray(iv))), np.eye(3)
-    a1 = np.block([[-alpha1 * mm_ * eye - c1 * sm, c2 * mm_ * eye - c2 * np.outer(m, m)],
-                   [-alpha2 * eye, -alpha0 * np.outer(m, m) + c2 * sv]])
+    a1 = np.block(
+        [
+            [-alpha1 * mm_ * eye - c1 * sm, c2 * mm_ * eye - c2 * np.outer(m, m)],
+            [-alpha2 * eye, -alpha0 * np.outer(m, m) + c2 * sv],
+        ]
+    )
     a21 = np.hstack([np.zeros((3, 3)), c2 * eye - alpha4 * sv])
     a3 = alpha3 * sm @ sm + alpha4 * sv @ sv
     return np.block([[a1, np.zeros((6, 3))], [a21, a3]])
@@ -335,8 +371,9 @@ def _paper_params(dtype=None) -> Params:
     """Section 4: IGRF-11 field at Lisbon (nT, NED), the Earth's rate there, Table 1."""
     from ..sim import earth
 
-    return default_params(earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)),
-                          dtype=dtype)
+    return default_params(
+        earth.LISBON_FIELD_NED_NT, np.asarray(earth.earth_rate_ned(earth.LISBON_LATITUDE_DEG)), dtype=dtype
+    )
 
 
 def _norm2(v):
@@ -349,18 +386,46 @@ def _iv_norm2(p):
     return _norm2(np.cross(m, np.cross(m, w)))
 
 
-ENTRIES = (registry.Entry(
-    name="batista-so3",
-    summary="attitude + Earth rate from a high-grade gyro and ONE vector, observer on SO(3) (RKMK-4 step)",
-    reference="Batista, Silvestre, Oliveira 2019 (SO(3)), eqs. (9), (16)",
-    make=make_observer, default_params=_paper_params,
-    gains=(registry.Gain("alpha1", "1/(s unit^2)", "gain of eq. (9), one value per Table-1 interval", "schedule",
-                         rate=("alpha1 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-           registry.Gain("alpha2", "1/s", "gain of eq. (9), one value per Table-1 interval", "schedule"),
-           registry.Gain("alpha0", "1/(s unit^2)", "gain of eq. (9) (damping of v^ along m)",
-                         rate=("alpha0 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-           registry.Gain("alpha3", "1/(s unit^2)", "attitude gain of eq. (16) on the vector I_m",
-                         rate=("alpha3 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav))),
-           registry.Gain("alpha4", "1/(s unit^4 (rad/s)^2)", "attitude gain of eq. (16) on I_v",
-                         rate=("alpha4 |I_v|^2 (1/s)", _iv_norm2))),
-    frame="NED", hold="zoh", needs=("mag",), module="batista_so3", check=check_params, recorded=False),)
+ENTRIES = (
+    registry.Entry(
+        name="batista-so3",
+        summary="attitude + Earth rate from a high-grade gyro and ONE vector, observer on SO(3) (RKMK-4 step)",
+        reference="Batista, Silvestre, Oliveira 2019 (SO(3)), eqs. (9), (16)",
+        make=make_observer,
+        default_params=_paper_params,
+        gains=(
+            registry.Gain(
+                "alpha1",
+                "1/(s unit^2)",
+                "gain of eq. (9), one value per Table-1 interval",
+                "schedule",
+                rate=("alpha1 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav)),
+            ),
+            registry.Gain("alpha2", "1/s", "gain of eq. (9), one value per Table-1 interval", "schedule"),
+            registry.Gain(
+                "alpha0",
+                "1/(s unit^2)",
+                "gain of eq. (9) (damping of v^ along m)",
+                rate=("alpha0 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav)),
+            ),
+            registry.Gain(
+                "alpha3",
+                "1/(s unit^2)",
+                "attitude gain of eq. (16) on the vector I_m",
+                rate=("alpha3 |I_m|^2 (1/s)", lambda p: _norm2(p.ref_nav)),
+            ),
+            registry.Gain(
+                "alpha4",
+                "1/(s unit^4 (rad/s)^2)",
+                "attitude gain of eq. (16) on I_v",
+                rate=("alpha4 |I_v|^2 (1/s)", _iv_norm2),
+            ),
+        ),
+        frame="NED",
+        hold="zoh",
+        needs=("mag",),
+        module="batista_so3",
+        check=check_params,
+        recorded=False,
+    ),
+)

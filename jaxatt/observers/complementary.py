@@ -56,6 +56,7 @@ zero vector, gets weight zero for that step (its correction is skipped, others s
 hold the measurement must be valid at both ends of the step). A non-finite gyro sample is replaced by the
 last valid gyro reading. :class:`Out` reports which measurements were used and whether the gyro was held.
 """
+
 from __future__ import annotations
 
 import functools
@@ -70,9 +71,24 @@ from ..integrate import input_at, rk4_step, rkmk4_step
 from ..types import ImuSample, Interval, Observer, VectorSample
 from . import registry
 
-__all__ = ["Params", "State", "Out", "StepInput", "make_observer", "default_params",
-           "imu_params", "check_params", "check_inputs", "right_error", "lyapunov", "correction_matrix",
-           "correction_quaternion", "FORMS", "UP_NED", "UP_ENU"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "StepInput",
+    "make_observer",
+    "default_params",
+    "imu_params",
+    "check_params",
+    "check_inputs",
+    "right_error",
+    "lyapunov",
+    "correction_matrix",
+    "correction_quaternion",
+    "FORMS",
+    "UP_NED",
+    "UP_ENU",
+]
 
 FORMS = ("matrix", "quaternion")
 #: The "up" direction (unit), i.e. the direction of the specific force an accelerometer at rest measures
@@ -188,8 +204,20 @@ def _initial_rotation(r_hat_0, q_hat_0) -> np.ndarray:
     return np.eye(3) if r_hat_0 is None else np.asarray(r_hat_0, float)
 
 
-def default_params(n_body: int = 0, n_inertial: int = 0, *, k=1.0, l=1.0, k_i: float = 0.0, r_hat_0=None,
-                   q_hat_0=None, bias_0=None, ref_inertial=None, ref_body=None, dtype=None) -> Params:
+def default_params(
+    n_body: int = 0,
+    n_inertial: int = 0,
+    *,
+    k=1.0,
+    l=1.0,
+    k_i: float = 0.0,
+    r_hat_0=None,
+    q_hat_0=None,
+    bias_0=None,
+    ref_inertial=None,
+    ref_body=None,
+    dtype=None,
+) -> Params:
     """Parameters for n_body complementary and n_inertial compatible measurements.
 
     Args:
@@ -222,9 +250,19 @@ def default_params(n_body: int = 0, n_inertial: int = 0, *, k=1.0, l=1.0, k_i: f
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), p)
 
 
-def imu_params(k_acc: float = 1.0, k_mag: float = 1.0, *, mag_ref=None, frame: str = "NED",
-               fields: Sequence[str] = ("acc", "mag"), k_i: float = 0.0, r_hat_0=None, q_hat_0=None, bias_0=None,
-               dtype=None) -> Params:
+def imu_params(
+    k_acc: float = 1.0,
+    k_mag: float = 1.0,
+    *,
+    mag_ref=None,
+    frame: str = "NED",
+    fields: Sequence[str] = ("acc", "mag"),
+    k_i: float = 0.0,
+    r_hat_0=None,
+    q_hat_0=None,
+    bias_0=None,
+    dtype=None,
+) -> Params:
     """Parameters for an accelerometer + magnetometer log (:class:`ImuSample`, constant references).
 
     The accelerometer reference is "up" (the specific force at rest is minus gravity): (0, 0, -1) in NED,
@@ -249,8 +287,17 @@ def imu_params(k_acc: float = 1.0, k_mag: float = 1.0, *, mag_ref=None, frame: s
             gains.append(k_mag)
         else:
             raise ValueError(f"fields must name ImuSample vector fields 'acc'/'mag', got {f!r}")
-    return default_params(len(fields), 0, k=gains, k_i=k_i, r_hat_0=r_hat_0, q_hat_0=q_hat_0, bias_0=bias_0,
-                          ref_inertial=np.reshape(np.asarray(refs, float), (-1, 3)), dtype=dtype)
+    return default_params(
+        len(fields),
+        0,
+        k=gains,
+        k_i=k_i,
+        r_hat_0=r_hat_0,
+        q_hat_0=q_hat_0,
+        bias_0=bias_0,
+        ref_inertial=np.reshape(np.asarray(refs, float), (-1, 3)),
+        dtype=dtype,
+    )
 
 
 def check_params(p: Params) -> None:
@@ -269,8 +316,10 @@ def check_params(p: Params) -> None:
     if r.shape != (3, 3) or not np.all(np.isfinite(r)):
         raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got shape {r.shape}")
     if np.linalg.norm(r.T @ r - np.eye(3)) > 1e-6 or np.linalg.det(r) <= 0:
-        raise ValueError("r_hat_0 must be a rotation matrix (R^T R = I, det R = +1); "
-                         "use so3.nearest_rotation to project an approximate one")
+        raise ValueError(
+            "r_hat_0 must be a rotation matrix (R^T R = I, det R = +1); "
+            "use so3.nearest_rotation to project an approximate one"
+        )
     b = np.asarray(p.bias_0, float)
     if b.shape != (3,) or not np.all(np.isfinite(b)):
         raise ValueError(f"bias_0 must be a finite (3,) vector (rad/s), got shape {b.shape}")
@@ -394,7 +443,8 @@ def _as_vector_sample(u, p: Params, imu_fields: tuple) -> VectorSample:
 
     zeros = lambda n: jnp.zeros((n, 3), dtype)  # noqa: E731
     return VectorSample(
-        u.t, u.gyr,
+        u.t,
+        u.gyr,
         field(u.body_meas, n1, "body_meas", zeros(n1)),
         field(u.ref_inertial, n1, "ref_inertial", p.ref_inertial),
         field(u.inertial_meas, n2, "inertial_meas", zeros(n2)),
@@ -435,8 +485,15 @@ def _prepare(u, p: Params, gyr_last, imu_fields):
         g_ok = jnp.all(jnp.isfinite(gyr))
         held = ~g_ok if held is None else held
         g_prev = jnp.where(g_ok, gyr, g_prev)
-        cleaned.append(StepInput(g_prev, _clean(v.body_meas, ok_a), _clean(v.ref_inertial, ok_a),
-                              _clean(v.inertial_meas, ok_b), _clean(v.ref_body, ok_b)))
+        cleaned.append(
+            StepInput(
+                g_prev,
+                _clean(v.body_meas, ok_a),
+                _clean(v.ref_inertial, ok_a),
+                _clean(v.inertial_meas, ok_b),
+                _clean(v.ref_body, ok_b),
+            )
+        )
     x = Interval(*cleaned) if len(cleaned) == 2 else cleaned[0]
     k = jnp.where(ok_a, p.k, 0.0)
     l = jnp.where(ok_b, p.l, 0.0)
@@ -481,6 +538,7 @@ def _make_observer(form: str, imu_fields: tuple, normalize: bool) -> Observer:
         x, k, l, ok_a, ok_b, held, t0, gyr_new = _prepare(sample, p, s.gyr_last, imu_fields)
         dt = jnp.asarray(dt, s.r.dtype)
         if form == "matrix":
+
             def f(b, frames, u):
                 sig = correction_matrix(frames[0], u, k, l, normalize)
                 return -p.k_i * sig, (u.gyr - b + sig,)  # bias' and the body rate of R^ (eq. 10)
@@ -491,6 +549,7 @@ def _make_observer(form: str, imu_fields: tuple, normalize: bool) -> Observer:
             q = jnp.where(jnp.dot(q, s.q) < 0, -q, q)
             sigma0 = correction_matrix(s.r, input_at(x, 0.0), k, l, normalize)
         else:
+
             def f(y, u):
                 qq, b = y
                 sig = correction_quaternion(qq, u, k, l, normalize)
@@ -506,8 +565,16 @@ def _make_observer(form: str, imu_fields: tuple, normalize: bool) -> Observer:
 
     def output(p: Params, s: State) -> Out:
         """The estimate held by ``s``; no correction has been applied yet (zero, no measurement used)."""
-        return Out(s.t, s.r, s.q, s.bias, jnp.zeros_like(s.bias), jnp.zeros(jnp.shape(p.k), bool),
-                   jnp.zeros(jnp.shape(p.l), bool), jnp.zeros((), bool))
+        return Out(
+            s.t,
+            s.r,
+            s.q,
+            s.bias,
+            jnp.zeros_like(s.bias),
+            jnp.zeros(jnp.shape(p.k), bool),
+            jnp.zeros(jnp.shape(p.l), bool),
+            jnp.zeros((), bool),
+        )
 
     return Observer(init, step, f"complementary-{form}", output)
 
@@ -532,14 +599,24 @@ def _recorded_observer() -> Observer:
     return make_observer(form="quaternion", imu_fields=("acc", "mag"), normalize=True)
 
 
-ENTRIES = (registry.Entry(
-    name="complementary",
-    summary="Trumpf et al.'s observer for complementary / compatible vector measurements with time-varying "
-            "references (Mahony's passive filter as a special case), optional gyro bias",
-    reference="Trumpf, Mahony, Hamel, Lageman 2012, eqs. (10), (18)",
-    make=_recorded_observer, default_params=_recorded_defaults,
-    gains=(registry.Gain("k", "1/s", "gains k_i of the complementary measurements (acc, mag), eq. (10)/(18)"),
-           registry.Gain("k_i", "1/s", "gyro-bias integral gain"),
-           registry.Gain("l", "1/s", "gains l_j of the compatible measurements, eq. (10)", tuned=False)),
-    setup=_setup_recorded, setup_fields=("r_hat_0", "ref_inertial"), frame="ENU", hold="next",
-    module="complementary", check=check_params),)
+ENTRIES = (
+    registry.Entry(
+        name="complementary",
+        summary="Trumpf et al.'s observer for complementary / compatible vector measurements with time-varying "
+        "references (Mahony's passive filter as a special case), optional gyro bias",
+        reference="Trumpf, Mahony, Hamel, Lageman 2012, eqs. (10), (18)",
+        make=_recorded_observer,
+        default_params=_recorded_defaults,
+        gains=(
+            registry.Gain("k", "1/s", "gains k_i of the complementary measurements (acc, mag), eq. (10)/(18)"),
+            registry.Gain("k_i", "1/s", "gyro-bias integral gain"),
+            registry.Gain("l", "1/s", "gains l_j of the compatible measurements, eq. (10)", tuned=False),
+        ),
+        setup=_setup_recorded,
+        setup_fields=("r_hat_0", "ref_inertial"),
+        frame="ENU",
+        hold="next",
+        module="complementary",
+        check=check_params,
+    ),
+)

@@ -60,6 +60,7 @@ Everything is pure JAX (jit / vmap / grad over ``Params``); normalisations are g
 NaN reaches a gradient. The step follows ahrs' operation order where reasonable (products written as ahrs'
 ``Quaternion.product``); sums of ``J^T f`` and the norms may round differently (ulps).
 """
+
 from __future__ import annotations
 
 import functools
@@ -74,8 +75,17 @@ from ..types import ImuSample, Observer
 from . import registry
 from .mahony import nwu_to_enu, quat_from_acc_mag_triad, start_quaternion, step_inputs
 
-__all__ = ["Params", "State", "Out", "make_observer", "default_params", "check_params", "BETA_MARG", "BETA_IMU",
-           "quat_from_acc_mag_triad"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "make_observer",
+    "default_params",
+    "check_params",
+    "BETA_MARG",
+    "BETA_IMU",
+    "quat_from_acc_mag_triad",
+]
 
 #: ahrs' default gains (``ahrs.filters.Madgwick``: ``gain_marg`` = 0.041, ``gain_imu`` = 0.033), rad/s.
 BETA_MARG = 0.041
@@ -140,42 +150,59 @@ def _update(q, g, a, m, acc_ok, mag_ok, beta, dt):
     accelerometer is missing). ``a`` and ``m`` are finite and non-zero (safe values substituted by the caller)."""
     dtype = q.dtype
     zero = jnp.zeros((), dtype)
-    q = so3.unit(q)                                            # ahrs: Quaternion(q) normalises
+    q = so3.unit(q)  # ahrs: Quaternion(q) normalises
     # Rate of change of the quaternion from the gyroscope (eq. 12).
     qdot = jnp.stack(so3.quat_multiply_parts(q, (zero, g[0], g[1], g[2])))
     qdot = 0.5 * qdot
     a = so3.unit(a)
     m = so3.unit(m)
     # Measured field in the earth frame (eq. 45) and its reference with the same inclination (eq. 46).
-    qm = so3.unit(jnp.stack([zero, m[0], m[1], m[2]]))       # ahrs: Quaternion([0, *m]) normalises again
+    qm = so3.unit(jnp.stack([zero, m[0], m[1], m[2]]))  # ahrs: Quaternion([0, *m]) normalises again
     qconj = (q[0], -q[1], -q[2], -q[3])
     h = so3.quat_multiply_parts(q, so3.quat_multiply_parts(qm, qconj))
     bxx = h[1] * h[1] + h[2] * h[2]
     bx_pos = bxx > 0
     bx = jnp.where(bx_pos, jnp.sqrt(jnp.where(bx_pos, bxx, 1.0)), 0.0)
     bz = h[3]
-    qw, qx, qy, qz = so3.unit(q)                               # ahrs: q / norm(q) once more
+    qw, qx, qy, qz = so3.unit(q)  # ahrs: q / norm(q) once more
     # Objective function (eq. 25 for gravity, eq. 31 with the field rows).
-    f = (2.0 * (qx * qz - qw * qy) - a[0],
-         2.0 * (qw * qx + qy * qz) - a[1],
-         2.0 * (0.5 - qx ** 2 - qy ** 2) - a[2],
-         2.0 * bx * (0.5 - qy ** 2 - qz ** 2) + 2.0 * bz * (qx * qz - qw * qy) - m[0],
-         2.0 * bx * (qx * qy - qw * qz) + 2.0 * bz * (qw * qx + qy * qz) - m[1],
-         2.0 * bx * (qw * qy + qx * qz) + 2.0 * bz * (0.5 - qx ** 2 - qy ** 2) - m[2])
+    f = (
+        2.0 * (qx * qz - qw * qy) - a[0],
+        2.0 * (qw * qx + qy * qz) - a[1],
+        2.0 * (0.5 - qx**2 - qy**2) - a[2],
+        2.0 * bx * (0.5 - qy**2 - qz**2) + 2.0 * bz * (qx * qz - qw * qy) - m[0],
+        2.0 * bx * (qx * qy - qw * qz) + 2.0 * bz * (qw * qx + qy * qz) - m[1],
+        2.0 * bx * (qw * qy + qx * qz) + 2.0 * bz * (0.5 - qx**2 - qy**2) - m[2],
+    )
     # Jacobian (eq. 26 for gravity, eq. 32 with the field rows).
-    jac = ((-2.0 * qy, 2.0 * qz, -2.0 * qw, 2.0 * qx),
-           (2.0 * qx, 2.0 * qw, 2.0 * qz, 2.0 * qy),
-           (zero, -4.0 * qx, -4.0 * qy, zero),
-           (-2.0 * bz * qy, 2.0 * bz * qz, -4.0 * bx * qy - 2.0 * bz * qw, -4.0 * bx * qz + 2.0 * bz * qx),
-           (-2.0 * bx * qz + 2.0 * bz * qx, 2.0 * bx * qy + 2.0 * bz * qw, 2.0 * bx * qx + 2.0 * bz * qz,
-            -2.0 * bx * qw + 2.0 * bz * qy),
-           (2.0 * bx * qy, 2.0 * bx * qz - 4.0 * bz * qx, 2.0 * bx * qw - 4.0 * bz * qy, 2.0 * bx * qx))
+    jac = (
+        (-2.0 * qy, 2.0 * qz, -2.0 * qw, 2.0 * qx),
+        (2.0 * qx, 2.0 * qw, 2.0 * qz, 2.0 * qy),
+        (zero, -4.0 * qx, -4.0 * qy, zero),
+        (-2.0 * bz * qy, 2.0 * bz * qz, -4.0 * bx * qy - 2.0 * bz * qw, -4.0 * bx * qz + 2.0 * bz * qx),
+        (
+            -2.0 * bx * qz + 2.0 * bz * qx,
+            2.0 * bx * qy + 2.0 * bz * qw,
+            2.0 * bx * qx + 2.0 * bz * qz,
+            -2.0 * bx * qw + 2.0 * bz * qy,
+        ),
+        (2.0 * bx * qy, 2.0 * bx * qz - 4.0 * bz * qx, 2.0 * bx * qw - 4.0 * bz * qy, 2.0 * bx * qx),
+    )
     # Gradient J^T f (eq. 34): gravity rows, then the field rows added (MARG) or not (IMU).
     grad_g = jnp.stack([jac[0][i] * f[0] + jac[1][i] * f[1] + jac[2][i] * f[2] for i in range(4)])
-    grad_gb = jnp.stack([jac[0][i] * f[0] + jac[1][i] * f[1] + jac[2][i] * f[2] + jac[3][i] * f[3]
-                         + jac[4][i] * f[4] + jac[5][i] * f[5] for i in range(4)])
+    grad_gb = jnp.stack(
+        [
+            jac[0][i] * f[0]
+            + jac[1][i] * f[1]
+            + jac[2][i] * f[2]
+            + jac[3][i] * f[3]
+            + jac[4][i] * f[4]
+            + jac[5][i] * f[5]
+            for i in range(4)
+        ]
+    )
     grad = jnp.where(mag_ok, grad_gb, grad_g)
-    grad = so3.unit(grad)                                      # a zero gradient stays zero: no correction
+    grad = so3.unit(grad)  # a zero gradient stays zero: no correction
     # Normalised gradient step with gain beta (eq. 33); none without a valid accelerometer sample.
     qdot = jnp.where(acc_ok, qdot - beta * grad, qdot)
     # Integrate (eq. 13) and renormalise.
@@ -237,11 +264,21 @@ def check_params(p: Params) -> None:
         raise ValueError(f"Madgwick beta must be a finite number > 0 (rad/s), got {v}")
 
 
-ENTRIES = (registry.Entry(
-    name="madgwick",
-    summary="Madgwick's gradient-descent MARG filter with magnetic distortion compensation (ahrs' updateMARG)",
-    reference="Madgwick 2010 report, eqs. (12)-(13), (25)-(26), (31)-(34), (45)-(46); ahrs.filters.Madgwick",
-    make=make_observer, default_params=lambda dtype=None: default_params(BETA_MARG, dtype=dtype),
-    gains=(registry.Gain("beta", "rad/s", "gain of the normalised gradient step, eq. (33)", "positive", True,
-                         (1e-4, 5.0)),),
-    frame="ENU", hold="next", module="madgwick", check=check_params),)
+ENTRIES = (
+    registry.Entry(
+        name="madgwick",
+        summary="Madgwick's gradient-descent MARG filter with magnetic distortion compensation (ahrs' updateMARG)",
+        reference="Madgwick 2010 report, eqs. (12)-(13), (25)-(26), (31)-(34), (45)-(46); ahrs.filters.Madgwick",
+        make=make_observer,
+        default_params=lambda dtype=None: default_params(BETA_MARG, dtype=dtype),
+        gains=(
+            registry.Gain(
+                "beta", "rad/s", "gain of the normalised gradient step, eq. (33)", "positive", True, (1e-4, 5.0)
+            ),
+        ),
+        frame="ENU",
+        hold="next",
+        module="madgwick",
+        check=check_params,
+    ),
+)

@@ -71,6 +71,7 @@ The first sample: a non-finite acc or mag there gives the identity quaternion (s
 Everything is pure JAX (jit / vmap / grad over ``Params``); the normalisations use gradient-safe norms.
 In float32 the step performs the same floating-point operations in the same order as MahonyAHRS.cpp.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -83,8 +84,18 @@ from .. import so3
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "make_observer", "default_params", "BROAD_TAGP", "quat_from_acc_mag_broad",
-           "quat_from_acc_mag_triad", "Q_ENU_FROM_NWU", "nwu_to_enu"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "make_observer",
+    "default_params",
+    "BROAD_TAGP",
+    "quat_from_acc_mag_broad",
+    "quat_from_acc_mag_triad",
+    "Q_ENU_FROM_NWU",
+    "nwu_to_enu",
+]
 
 #: (Kp, Ki) of BROAD's "TAGP" (lowest average total RMSE over all 39 trials on their grid).
 BROAD_TAGP = (0.74, 0.0012)
@@ -166,12 +177,15 @@ def _quat_from_rotmat_broad(r: jax.Array) -> jax.Array:
     y_sq = (1 - r[..., 0, 0] + r[..., 1, 1] - r[..., 2, 2]) / 4
     z_sq = (1 - r[..., 0, 0] - r[..., 1, 1] + r[..., 2, 2]) / 4
     s = lambda v: jnp.sqrt(jnp.maximum(v, 0.0))  # noqa: E731
-    return jnp.stack([
-        s(w_sq),
-        jnp.copysign(s(x_sq), r[..., 2, 1] - r[..., 1, 2]),
-        jnp.copysign(s(y_sq), r[..., 0, 2] - r[..., 2, 0]),
-        jnp.copysign(s(z_sq), r[..., 1, 0] - r[..., 0, 1]),
-    ], axis=-1)
+    return jnp.stack(
+        [
+            s(w_sq),
+            jnp.copysign(s(x_sq), r[..., 2, 1] - r[..., 1, 2]),
+            jnp.copysign(s(y_sq), r[..., 0, 2] - r[..., 2, 0]),
+            jnp.copysign(s(z_sq), r[..., 1, 0] - r[..., 0, 1]),
+        ],
+        axis=-1,
+    )
 
 
 def quat_from_acc_mag_broad(acc: jax.Array, mag: jax.Array) -> jax.Array:
@@ -339,27 +353,48 @@ def make_observer(init_mode: str = "broad") -> Observer:
     def init(p: Params, sample: ImuSample) -> State:
         gyr = jnp.asarray(sample.gyr)
         q0 = start_quaternion(sample, quat_from_acc_mag_broad if init_mode == "broad" else quat_from_acc_mag_triad)
-        return State(t=jnp.asarray(sample.t, gyr.dtype), q=q0, integral=jnp.zeros(3, gyr.dtype),
-                     gyr_last=jnp.where(jnp.isfinite(gyr), gyr, 0.0))
+        return State(
+            t=jnp.asarray(sample.t, gyr.dtype),
+            q=q0,
+            integral=jnp.zeros(3, gyr.dtype),
+            gyr_last=jnp.where(jnp.isfinite(gyr), gyr, 0.0),
+        )
 
     def step(p: Params, s: State, sample, dt):
         dtype = s.q.dtype
         gyr, acc, mag, acc_ok, mag_ok = step_inputs(sample, s.gyr_last, dtype)
         dt = jnp.asarray(dt, dtype)
-        q, integral, w_mes = _update(s.q, s.integral, gyr, acc, mag, acc_ok, mag_ok,
-                                     jnp.asarray(p.kp, dtype), jnp.asarray(p.ki, dtype), dt)
+        q, integral, w_mes = _update(
+            s.q, s.integral, gyr, acc, mag, acc_ok, mag_ok, jnp.asarray(p.kp, dtype), jnp.asarray(p.ki, dtype), dt
+        )
         t = s.t + dt
         q_enu = nwu_to_enu(q)
-        out = Out(t=t, q=q_enu, r=so3.quat_to_matrix(q_enu), q_nwu=q, bias=-integral, err=w_mes,
-                  acc_used=acc_ok, mag_used=mag_ok)
+        out = Out(
+            t=t,
+            q=q_enu,
+            r=so3.quat_to_matrix(q_enu),
+            q_nwu=q,
+            bias=-integral,
+            err=w_mes,
+            acc_used=acc_ok,
+            mag_used=mag_ok,
+        )
         return State(t=t, q=q, integral=integral, gyr_last=gyr), out
 
     def output(p: Params, s: State) -> Out:
         """The estimate held by ``s`` (no measurement used yet)."""
         q_enu = nwu_to_enu(s.q)
         no = jnp.zeros((), bool)
-        return Out(t=s.t, q=q_enu, r=so3.quat_to_matrix(q_enu), q_nwu=s.q, bias=-s.integral,
-                   err=jnp.zeros_like(s.integral), acc_used=no, mag_used=no)
+        return Out(
+            t=s.t,
+            q=q_enu,
+            r=so3.quat_to_matrix(q_enu),
+            q_nwu=s.q,
+            bias=-s.integral,
+            err=jnp.zeros_like(s.integral),
+            acc_used=no,
+            mag_used=no,
+        )
 
     return Observer(init, step, "mahony", output)
 
@@ -379,11 +414,20 @@ def _registry_observer() -> Observer:
     return make_observer("triad")
 
 
-ENTRIES = (registry.Entry(
-    name="mahony",
-    summary="Mahony's explicit complementary filter with gyro bias (MahonyAHRS.cpp as run by BROAD), TRIAD start",
-    reference="Mahony, Hamel, Pflimlin 2008; Trumpf et al. 2012 eq. (10); BROAD's example code",
-    make=_registry_observer, default_params=lambda dtype=None: default_params(*BROAD_TAGP, dtype=dtype),
-    gains=(registry.Gain("kp", "1/s", "proportional gain Kp", "positive", True, (1e-3, 50.0)),
-           registry.Gain("ki", "1/s^2", "integral (gyro-bias) gain Ki", "positive", True, (1e-7, 10.0))),
-    frame="ENU", hold="next", module="mahony", check=check_params),)
+ENTRIES = (
+    registry.Entry(
+        name="mahony",
+        summary="Mahony's explicit complementary filter with gyro bias (MahonyAHRS.cpp as run by BROAD), TRIAD start",
+        reference="Mahony, Hamel, Pflimlin 2008; Trumpf et al. 2012 eq. (10); BROAD's example code",
+        make=_registry_observer,
+        default_params=lambda dtype=None: default_params(*BROAD_TAGP, dtype=dtype),
+        gains=(
+            registry.Gain("kp", "1/s", "proportional gain Kp", "positive", True, (1e-3, 50.0)),
+            registry.Gain("ki", "1/s^2", "integral (gyro-bias) gain Ki", "positive", True, (1e-7, 10.0)),
+        ),
+        frame="ENU",
+        hold="next",
+        module="mahony",
+        check=check_params,
+    ),
+)

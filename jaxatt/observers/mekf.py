@@ -28,6 +28,7 @@ mixture's variance); the bias random walk su is a parameter (default 1e-6 rad/s/
 experiment uses 1e-5). P_0 = blkdiag(1e-4 I, 1e-7 I) in Section 5.2.
 Missing samples (NaN): a missing vector sensor skips its update, a missing gyro sample holds the last one.
 """
+
 from __future__ import annotations
 
 import functools
@@ -41,8 +42,17 @@ from .. import so3
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "make_observer", "default_params", "check_params", "quat_exp", "propagate",
-           "update"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "make_observer",
+    "default_params",
+    "check_params",
+    "quat_exp",
+    "propagate",
+    "update",
+]
 
 
 class Params(NamedTuple):
@@ -89,10 +99,23 @@ class Out(NamedTuple):
     sigma: jax.Array
 
 
-def default_params(acc_ref_nav, mag_ref_nav, *, gyro_noise_std: float = 1e-3, bias_rw: float = 1e-6,
-                   acc_noise_std: float = 5e-3 * 9.81, mag_noise_std: float = 8e-3, r_acc=None, r_mag=None,
-                   r_hat_0=None, b_hat_0=(0.0, 0.0, 0.0), p0_att: float = 1e-4, p0_bias: float = 1e-7,
-                   p0=None, dtype=None) -> Params:
+def default_params(
+    acc_ref_nav,
+    mag_ref_nav,
+    *,
+    gyro_noise_std: float = 1e-3,
+    bias_rw: float = 1e-6,
+    acc_noise_std: float = 5e-3 * 9.81,
+    mag_noise_std: float = 8e-3,
+    r_acc=None,
+    r_mag=None,
+    r_hat_0=None,
+    b_hat_0=(0.0, 0.0, 0.0),
+    p0_att: float = 1e-4,
+    p0_bias: float = 1e-7,
+    p0=None,
+    dtype=None,
+) -> Params:
     """Section 5.2's MEKF: P_0 = blkdiag(1e-4 I, 1e-7 I); R_i = sigma_i^2 I unless given. Validated."""
     dtype = dtype or jnp.result_type(float)
     p = Params(
@@ -163,9 +186,13 @@ def propagate(p: Params, q, b_hat, cov, gyr, dt):
     phi = jnp.concatenate([jnp.concatenate([phi11, phi12], 1), jnp.concatenate([z, eye], 1)], 0)
     sv2dt = (p.gyro_noise_std * dt) ** 2
     su2 = p.bias_rw**2
-    qd = jnp.concatenate([
-        jnp.concatenate([(sv2dt + su2 * dt**3 / 3.0) * eye, -(0.5 * su2 * dt**2) * eye], 1),
-        jnp.concatenate([-(0.5 * su2 * dt**2) * eye, (su2 * dt) * eye], 1)], 0)
+    qd = jnp.concatenate(
+        [
+            jnp.concatenate([(sv2dt + su2 * dt**3 / 3.0) * eye, -(0.5 * su2 * dt**2) * eye], 1),
+            jnp.concatenate([-(0.5 * su2 * dt**2) * eye, (su2 * dt) * eye], 1),
+        ],
+        0,
+    )
     cov = so3.mm(so3.mm(phi, cov), phi.T) + qd
     return q, 0.5 * (cov + cov.T)
 
@@ -240,18 +267,38 @@ def _setup_recorded(p: Params, sample) -> Params:
 def _recorded_defaults(dtype=None) -> Params:
     """Untuned defaults in recorded-data units: sigma_gyro = 0.002 rad/s, bias random walk 1e-5 rad/s/sqrt(s),
     R_acc = (1 m/s^2)^2 I, R_mag = (3 unit)^2 I, P0 = blkdiag(1e-4 I, 1e-5 I)."""
-    return default_params((0.0, 0.0, 9.81), (0.0, 17.0, -40.0), gyro_noise_std=0.002, bias_rw=1e-5,
-                          acc_noise_std=1.0, mag_noise_std=3.0, p0_att=1e-4, p0_bias=1e-5, dtype=dtype)
+    return default_params(
+        (0.0, 0.0, 9.81),
+        (0.0, 17.0, -40.0),
+        gyro_noise_std=0.002,
+        bias_rw=1e-5,
+        acc_noise_std=1.0,
+        mag_noise_std=3.0,
+        p0_att=1e-4,
+        p0_bias=1e-5,
+        dtype=dtype,
+    )
 
 
-ENTRIES = (registry.Entry(
-    name="mekf", summary="multiplicative extended Kalman filter, attitude + gyro bias",
-    reference="Markley & Crassidis 2014, Sec. 6.2 (the MEKF of sensors2020 Section 5.2)",
-    make=make_observer, default_params=_recorded_defaults,
-    gains=(registry.Gain("gyro_noise_std", "rad/s", "std of one gyro sample (process noise)"),
-           registry.Gain("bias_rw", "rad/s/sqrt(s)", "gyro-bias random walk"),
-           registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance, 3x3 SPD", "spd"),
-           registry.Gain("r_mag", "unit^2", "magnetometer noise covariance, 3x3 SPD", "spd"),
-           registry.Gain("p0", "rad^2, (rad/s)^2", "initial error covariance, 6x6 SPD", "spd", tuned=False)),
-    setup=_setup_recorded, setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"), frame="ENU", hold="next",
-    module="mekf", check=check_params),)
+ENTRIES = (
+    registry.Entry(
+        name="mekf",
+        summary="multiplicative extended Kalman filter, attitude + gyro bias",
+        reference="Markley & Crassidis 2014, Sec. 6.2 (the MEKF of sensors2020 Section 5.2)",
+        make=make_observer,
+        default_params=_recorded_defaults,
+        gains=(
+            registry.Gain("gyro_noise_std", "rad/s", "std of one gyro sample (process noise)"),
+            registry.Gain("bias_rw", "rad/s/sqrt(s)", "gyro-bias random walk"),
+            registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance, 3x3 SPD", "spd"),
+            registry.Gain("r_mag", "unit^2", "magnetometer noise covariance, 3x3 SPD", "spd"),
+            registry.Gain("p0", "rad^2, (rad/s)^2", "initial error covariance, 6x6 SPD", "spd", tuned=False),
+        ),
+        setup=_setup_recorded,
+        setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"),
+        frame="ENU",
+        hold="next",
+        module="mekf",
+        check=check_params,
+    ),
+)

@@ -53,6 +53,7 @@ Readings chosen where the paper is open (also in docs/observers/nlio.md):
 Missing samples (NaN in a log): a missing vector sample switches its correction off (NLIO: K_i = 0 and P only
 propagates; NLO: the measurement is replaced by R^s^T v_i^N); a missing gyro sample holds the last valid one.
 """
+
 from __future__ import annotations
 
 import functools
@@ -67,9 +68,24 @@ from ..integrate import input_at, rk4_step
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "VARIANTS", "make_observer", "default_params", "check_params", "injection",
-           "projection", "rotation_of", "kalman_gain", "riccati_step", "auxiliary_rhs", "attitude_rhs",
-           "triad_matrix", "TRIADS"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "VARIANTS",
+    "make_observer",
+    "default_params",
+    "check_params",
+    "injection",
+    "projection",
+    "rotation_of",
+    "kalman_gain",
+    "riccati_step",
+    "auxiliary_rhs",
+    "attitude_rhs",
+    "triad_matrix",
+    "TRIADS",
+]
 
 VARIANTS = ("nlo", "nlio-fg", "nlio-tv")
 
@@ -157,11 +173,29 @@ def _mat(x, name) -> np.ndarray:
     return a
 
 
-def default_params(acc_ref_nav, mag_ref_nav, *, kp=15.0, kv: float = 0.2, theta: float = 1.0,
-                   bias_bound: float = 0.05, bias_max: float = 0.06, r_hat_0=None, b_hat_0=(0.0, 0.0, 0.0),
-                   k1=5.6, k2=3.3, gyro_noise_std: float = 1e-3, acc_noise_std: float = 5e-3 * 9.81,
-                   mag_noise_std: float = 8e-3, r_acc=None, r_mag=None, p0_acc=1e-5, p0_mag=5e-7,
-                   q_scale: float = 1.0, dtype=None) -> Params:
+def default_params(
+    acc_ref_nav,
+    mag_ref_nav,
+    *,
+    kp=15.0,
+    kv: float = 0.2,
+    theta: float = 1.0,
+    bias_bound: float = 0.05,
+    bias_max: float = 0.06,
+    r_hat_0=None,
+    b_hat_0=(0.0, 0.0, 0.0),
+    k1=5.6,
+    k2=3.3,
+    gyro_noise_std: float = 1e-3,
+    acc_noise_std: float = 5e-3 * 9.81,
+    mag_noise_std: float = 8e-3,
+    r_acc=None,
+    r_mag=None,
+    p0_acc=1e-5,
+    p0_mag=5e-7,
+    q_scale: float = 1.0,
+    dtype=None,
+) -> Params:
     """Parameters with Section 5's values (Case 1: Kp = 15 I, kv = 0.2, theta = 1, K1 = 5.6 I, K2 = 3.3 I,
     P0 = blkdiag(1e-5 I, 5e-7 I), sigma_w = 1e-3 rad/s, R_vi = sigma_i^2 I). Matrices may be given as scalars
     (times I) or diagonals; ``r_acc``/``r_mag`` default to acc_noise_std^2 I / mag_noise_std^2 I. Validated."""
@@ -197,8 +231,9 @@ def _spd(a, name, strict=True):
         raise ValueError(f"{name} must be symmetric")
     ev = np.linalg.eigvalsh(a)
     if (ev.min() <= 0) if strict else (ev.min() < -1e-12 * max(1.0, ev.max())):
-        raise ValueError(f"{name} must be symmetric positive {'definite' if strict else 'semi-definite'}, "
-                         f"eigenvalues {ev}")
+        raise ValueError(
+            f"{name} must be symmetric positive {'definite' if strict else 'semi-definite'}, eigenvalues {ev}"
+        )
 
 
 def check_params(p: Params) -> None:
@@ -212,8 +247,10 @@ def check_params(p: Params) -> None:
     a, m = refs[0], refs[1]
     na, nm = np.linalg.norm(a), np.linalg.norm(m)
     if na == 0 or nm == 0 or np.linalg.norm(np.cross(a, m)) < 1e-6 * na * nm:
-        raise ValueError("Assumption 1 of sensors2020-nlio is violated: acc_ref_nav and mag_ref_nav must be non-zero "
-                         "and not parallel (the attitude is not observable from parallel vectors)")
+        raise ValueError(
+            "Assumption 1 of sensors2020-nlio is violated: acc_ref_nav and mag_ref_nav must be non-zero "
+            "and not parallel (the attitude is not observable from parallel vectors)"
+        )
     _spd(p.kp, "kp (Kp > 0, Lemma 1)")
     for name, low in (("kv", 0.0), ("bias_bound", 0.0)):
         v = np.asarray(getattr(p, name), float)
@@ -375,21 +412,38 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
         rt = jnp.swapaxes(p.r_hat_0, -1, -2)
         v1 = jnp.where(_finite(acc), acc, so3.mv(rt, p.acc_ref_nav))
         v2 = jnp.where(_finite(mag), mag, so3.mv(rt, p.mag_ref_nav))
-        return State(jnp.asarray(sample.t, dtype), p.r_hat_0, p.b_hat_0, v1, v2,
-                     p.p0_acc if tv else None, p.p0_mag if tv else None, jnp.where(_finite(gyr), gyr, 0.0))
+        return State(
+            jnp.asarray(sample.t, dtype),
+            p.r_hat_0,
+            p.b_hat_0,
+            v1,
+            v2,
+            p.p0_acc if tv else None,
+            p.p0_mag if tv else None,
+            jnp.where(_finite(gyr), gyr, 0.0),
+        )
 
     def sanitize(u: ImuSample, gyr_last):
         ok1, ok2 = _finite(u.acc), _finite(u.mag)
         # NaN-free stand-ins; the masks switch the corresponding corrections off.
-        return u._replace(gyr=jnp.where(_finite(u.gyr), u.gyr, gyr_last), acc=jnp.where(ok1, u.acc, 0.0),
-                          mag=jnp.where(ok2, u.mag, 0.0)), ok1, ok2
+        return (
+            u._replace(
+                gyr=jnp.where(_finite(u.gyr), u.gyr, gyr_last),
+                acc=jnp.where(ok1, u.acc, 0.0),
+                mag=jnp.where(ok2, u.mag, 0.0),
+            ),
+            ok1,
+            ok2,
+        )
 
     def step(p: Params, s: State, sample, dt):
         if isinstance(sample, Interval):
             a, ok1a, ok2a = sanitize(sample.start, s.gyr_last)
             b, ok1b, ok2b = sanitize(sample.end, s.gyr_last)
-            u = Interval(a._replace(acc=jnp.where(ok1a, a.acc, b.acc), mag=jnp.where(ok2a, a.mag, b.mag)),
-                         b._replace(acc=jnp.where(ok1b, b.acc, a.acc), mag=jnp.where(ok2b, b.mag, a.mag)))
+            u = Interval(
+                a._replace(acc=jnp.where(ok1a, a.acc, b.acc), mag=jnp.where(ok2a, a.mag, b.mag)),
+                b._replace(acc=jnp.where(ok1b, b.acc, a.acc), mag=jnp.where(ok2b, b.mag, a.mag)),
+            )
             ok1, ok2 = ok1a | ok1b, ok2a | ok2b
             t0, gyr_mid, gyr_new = a.t, 0.5 * (a.gyr + b.gyr), b.gyr
         else:
@@ -436,8 +490,16 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
             v2 = jnp.where(ok2, u_end.mag, s.v2)
         t1 = t0 + dt
         new = State(t1, r_hat, b_hat, v1, v2, p1, p2, gyr_new)
-        out = Out(t1, rotation_of(r_hat), r_hat, b_hat, v1 if aux else None, v2 if aux else None,
-                  k1 if aux else None, k2 if aux else None)
+        out = Out(
+            t1,
+            rotation_of(r_hat),
+            r_hat,
+            b_hat,
+            v1 if aux else None,
+            v2 if aux else None,
+            k1 if aux else None,
+            k2 if aux else None,
+        )
         return new, out
 
     def output(p: Params, s: State) -> Out:
@@ -464,29 +526,65 @@ def _setup_recorded(p: Params, sample) -> Params:
 def _recorded_defaults(dtype=None) -> Params:
     """Untuned defaults in recorded-data units (rad/s, m/s^2, the data's field unit): Kp = 0.3 I, kv = 0.02,
     K1 = I, K2 = 0.3 I, sigma_gyro = 0.002 rad/s, R_acc = P0_acc = 0.25 I, R_mag = P0_mag = I, L_b = 0.02 rad/s."""
-    return default_params((0.0, 0.0, 9.81), (0.0, 17.0, -40.0), kp=0.3, kv=0.02, k1=1.0, k2=0.3,
-                          gyro_noise_std=0.002, r_acc=0.25, r_mag=1.0, p0_acc=0.25, p0_mag=1.0, bias_bound=0.02,
-                          bias_max=0.024, dtype=dtype)
+    return default_params(
+        (0.0, 0.0, 9.81),
+        (0.0, 17.0, -40.0),
+        kp=0.3,
+        kv=0.02,
+        k1=1.0,
+        k2=0.3,
+        gyro_noise_std=0.002,
+        r_acc=0.25,
+        r_mag=1.0,
+        p0_acc=0.25,
+        p0_mag=1.0,
+        bias_bound=0.02,
+        bias_max=0.024,
+        dtype=dtype,
+    )
 
 
 _G_KP = registry.Gain("kp", "1/s", "attitude gain Kp, eq. (10), 3x3 SPD", "spd")
 _G_KV = registry.Gain("kv", "1/s", "gyro-bias gain k_v, eq. (10)")
 _G_K1 = registry.Gain("k1", "1/s", "auxiliary-observer gain K1 of the accelerometer vector (NLIO-FG), 3x3 SPD", "spd")
 _G_K2 = registry.Gain("k2", "1/s", "auxiliary-observer gain K2 of the magnetometer vector (NLIO-FG), 3x3 SPD", "spd")
-_G_TV = (registry.Gain("gyro_noise_std", "rad/s", "gyro noise std of the Riccati recursion (NLIO-TV)"),
-         registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance R_1 (NLIO-TV), 3x3 SPD", "spd"),
-         registry.Gain("r_mag", "unit^2", "magnetometer noise covariance R_2 (NLIO-TV), 3x3 SPD", "spd"))
-_COMMON = dict(reference="sensors2020 (nonlinear interconnected observer with gyro-bias estimation), eqs. (10)-(14), "
-                         "(17), (28)-(30)",
-               default_params=_recorded_defaults, setup=_setup_recorded,
-               setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"), frame="ENU", hold="next", module="nlio",
-               check=check_params)
+_G_TV = (
+    registry.Gain("gyro_noise_std", "rad/s", "gyro noise std of the Riccati recursion (NLIO-TV)"),
+    registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance R_1 (NLIO-TV), 3x3 SPD", "spd"),
+    registry.Gain("r_mag", "unit^2", "magnetometer noise covariance R_2 (NLIO-TV), 3x3 SPD", "spd"),
+)
+_COMMON = dict(
+    reference="sensors2020 (nonlinear interconnected observer with gyro-bias estimation), eqs. (10)-(14), "
+    "(17), (28)-(30)",
+    default_params=_recorded_defaults,
+    setup=_setup_recorded,
+    setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"),
+    frame="ENU",
+    hold="next",
+    module="nlio",
+    check=check_params,
+)
 
 ENTRIES = (
-    registry.Entry(name="nlo", summary="nonlinear observer with gyro bias on the raw vectors (NLO)",
-                   make=lambda: make_observer("nlo"), gains=(_G_KP, _G_KV), **_COMMON),
-    registry.Entry(name="nlio-fg", summary="interconnected observer, auxiliary linear observer with fixed gains",
-                   make=lambda: make_observer("nlio-fg"), gains=(_G_KP, _G_KV, _G_K1, _G_K2), **_COMMON),
-    registry.Entry(name="nlio", summary="interconnected observer, auxiliary Kalman (time-varying) gains (NLIO-TV)",
-                   make=lambda: make_observer("nlio-tv"), gains=(_G_KP, _G_KV) + _G_TV, **_COMMON),
+    registry.Entry(
+        name="nlo",
+        summary="nonlinear observer with gyro bias on the raw vectors (NLO)",
+        make=lambda: make_observer("nlo"),
+        gains=(_G_KP, _G_KV),
+        **_COMMON,
+    ),
+    registry.Entry(
+        name="nlio-fg",
+        summary="interconnected observer, auxiliary linear observer with fixed gains",
+        make=lambda: make_observer("nlio-fg"),
+        gains=(_G_KP, _G_KV, _G_K1, _G_K2),
+        **_COMMON,
+    ),
+    registry.Entry(
+        name="nlio",
+        summary="interconnected observer, auxiliary Kalman (time-varying) gains (NLIO-TV)",
+        make=lambda: make_observer("nlio-tv"),
+        gains=(_G_KP, _G_KV) + _G_TV,
+        **_COMMON,
+    ),
 )

@@ -15,6 +15,7 @@ accelerometer in m/s^2 (specific force, "up" at rest), magnetometer in any unit 
 reference); the estimate maps sensor to ``Entry.frame`` (ENU for every built-in), :func:`jaxatt.filter` converts
 it to the frame asked for.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -25,8 +26,18 @@ import jax.numpy as jnp
 from .. import so3
 from ..types import Observer
 
-__all__ = ["Gain", "Entry", "INDEX", "names", "get", "register", "recorded_observer", "CONSTRAINTS",
-           "first_sample_frame", "markdown_table"]
+__all__ = [
+    "Gain",
+    "Entry",
+    "INDEX",
+    "names",
+    "get",
+    "register",
+    "recorded_observer",
+    "CONSTRAINTS",
+    "first_sample_frame",
+    "markdown_table",
+]
 
 #: Constraints a gain can declare (the fitter maps each to a transform, :mod:`jaxatt.fitting.parametrize`):
 #: "positive" (elementwise > 0, learnt in log space), "schedule" (a positive piecewise-constant gain, one value per
@@ -224,11 +235,12 @@ def recorded_observer(entry) -> Observer:
     set-up. Cached: the same entry gives the same Observer (jitted runners are reused)."""
     e = get(entry)
     if not e.recorded:
-        raise ValueError(f"observer {e.name!r} is not set up for recorded data (it needs the references and gains of "
-                         "its paper): pass the Observer and its params yourself")
+        raise ValueError(
+            f"observer {e.name!r} is not set up for recorded data (it needs the references and gains of "
+            "its paper): pass the Observer and its params yourself"
+        )
     if e.setup is None:
         return e.make()
     if e.name not in _WRAPPED:
         _WRAPPED[e.name] = _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name)
     return _WRAPPED[e.name]
-

@@ -57,6 +57,7 @@ Everything is pure JAX: jit, vmap over trials (padded, masked) and over paramete
 (:func:`jaxatt.fit` learns the parameters from BROAD trials). Shipped tuned parameters: the registry entry
 "robust" (``jaxatt.filter("robust", ...)``) and :func:`jaxatt.data.gains.load_params`.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -69,9 +70,23 @@ from .. import so3
 from ..types import ImuSample, Interval, Observer
 from . import registry
 
-__all__ = ["Params", "State", "Out", "Coeffs", "make_observer", "default_params", "params_from_dict",
-           "params_to_dict", "coefficients", "PARAM_NAMES", "TUNABLE", "ENTRIES", "check_params",
-           "quat_from_acc_mag_enu", "gain_from_tau"]
+__all__ = [
+    "Params",
+    "State",
+    "Out",
+    "Coeffs",
+    "make_observer",
+    "default_params",
+    "params_from_dict",
+    "params_to_dict",
+    "coefficients",
+    "PARAM_NAMES",
+    "TUNABLE",
+    "ENTRIES",
+    "check_params",
+    "quat_from_acc_mag_enu",
+    "gain_from_tau",
+]
 
 _DEG = float(np.pi / 180.0)
 
@@ -122,14 +137,44 @@ class Params(NamedTuple):
 
 PARAM_NAMES = Params._fields
 #: Parameters :func:`jaxatt.fit` learns by default (all positive; learnt in log space within bounds).
-TUNABLE = ("tau_acc", "tau_acc_2", "tau_mag", "tau_bias", "tau_bias_rest", "tau_rest",
-           "rest_hold", "rest_th_gyr", "rest_th_acc", "acc_th", "acc_hold", "mag_norm_th", "mag_dip_th", "mag_hold",
-           "tau_mag_ref")
+TUNABLE = (
+    "tau_acc",
+    "tau_acc_2",
+    "tau_mag",
+    "tau_bias",
+    "tau_bias_rest",
+    "tau_rest",
+    "rest_hold",
+    "rest_th_gyr",
+    "rest_th_acc",
+    "acc_th",
+    "acc_hold",
+    "mag_norm_th",
+    "mag_dip_th",
+    "mag_hold",
+    "tau_mag_ref",
+)
 
 _DEFAULTS = dict(
-    tau_acc=2.0, tau_acc_2=1.0, tau_mag=9.0, tau_bias=60.0, tau_bias_rest=3.0, tau_rest=0.5,
-    rest_hold=1.5, rest_th_gyr=2.0 * _DEG, rest_th_acc=0.5, acc_th=5.0, acc_hold=0.1, mag_norm_th=0.1,
-    mag_dip_th=10.0 * _DEG, mag_hold=0.5, tau_mag_ref=30.0, gravity=9.81, gate_sharpness=6.0, bias_max=2.0 * _DEG)
+    tau_acc=2.0,
+    tau_acc_2=1.0,
+    tau_mag=9.0,
+    tau_bias=60.0,
+    tau_bias_rest=3.0,
+    tau_rest=0.5,
+    rest_hold=1.5,
+    rest_th_gyr=2.0 * _DEG,
+    rest_th_acc=0.5,
+    acc_th=5.0,
+    acc_hold=0.1,
+    mag_norm_th=0.1,
+    mag_dip_th=10.0 * _DEG,
+    mag_hold=0.5,
+    tau_mag_ref=30.0,
+    gravity=9.81,
+    gate_sharpness=6.0,
+    bias_max=2.0 * _DEG,
+)
 
 
 class State(NamedTuple):
@@ -218,7 +263,6 @@ def gain_from_tau(tau, dt):
     return -jnp.expm1(-dt / tau)
 
 
-
 # ------------------------------------------------------------------------------------------------------------
 # Coefficients derived from the parameters and dt (VQF's split: params -> coefficients -> state)
 # ------------------------------------------------------------------------------------------------------------
@@ -253,15 +297,28 @@ def coefficients(p: Params, dt) -> Coeffs:
     the linear decay of the held deviations, reciprocals of the thresholds."""
     lo = jax.nn.sigmoid(-p.gate_sharpness)
     return Coeffs(
-        dt=dt, k_rest=gain_from_tau(p.tau_rest, dt), k_bias_rest=gain_from_tau(p.tau_bias_rest, dt),
-        k_acc=gain_from_tau(p.tau_acc, dt), k_acc_2=gain_from_tau(p.tau_acc_2, dt),
-        k_mag=gain_from_tau(p.tau_mag, dt), k_mag_ref=gain_from_tau(p.tau_mag_ref, dt),
+        dt=dt,
+        k_rest=gain_from_tau(p.tau_rest, dt),
+        k_bias_rest=gain_from_tau(p.tau_bias_rest, dt),
+        k_acc=gain_from_tau(p.tau_acc, dt),
+        k_acc_2=gain_from_tau(p.tau_acc_2, dt),
+        k_mag=gain_from_tau(p.tau_mag, dt),
+        k_mag_ref=gain_from_tau(p.tau_mag_ref, dt),
         inv_bias=1.0 / p.tau_bias,
-        inv_rest_gyr2=1.0 / (p.rest_th_gyr * p.rest_th_gyr), inv_rest_acc2=1.0 / (p.rest_th_acc * p.rest_th_acc),
-        inv_acc_th=1.0 / p.acc_th, inv_mag_norm_th=1.0 / p.mag_norm_th, inv_mag_dip_th=1.0 / p.mag_dip_th,
-        dec_rest=dt / p.rest_hold, dec_acc=dt / p.acc_hold, dec_mag=dt / p.mag_hold,
-        gravity=p.gravity, sharpness=p.gate_sharpness, gate_lo=lo, gate_scale=1.0 / (1.0 - 2.0 * lo),
-        bias_max=p.bias_max)
+        inv_rest_gyr2=1.0 / (p.rest_th_gyr * p.rest_th_gyr),
+        inv_rest_acc2=1.0 / (p.rest_th_acc * p.rest_th_acc),
+        inv_acc_th=1.0 / p.acc_th,
+        inv_mag_norm_th=1.0 / p.mag_norm_th,
+        inv_mag_dip_th=1.0 / p.mag_dip_th,
+        dec_rest=dt / p.rest_hold,
+        dec_acc=dt / p.acc_hold,
+        dec_mag=dt / p.mag_hold,
+        gravity=p.gravity,
+        sharpness=p.gate_sharpness,
+        gate_lo=lo,
+        gate_scale=1.0 / (1.0 - 2.0 * lo),
+        bias_max=p.bias_max,
+    )
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -270,9 +327,36 @@ def coefficients(p: Params, dt) -> Coeffs:
 # arithmetic freely). ``step`` unpacks the public State into components and packs the result back.
 # ------------------------------------------------------------------------------------------------------------
 #: Components of the tuple ``_core`` returns: the new state, then the diagnostics of the step.
-_ROWS = ("qw", "qx", "qy", "qz", "bx", "by", "bz", "l1x", "l1y", "l1z", "l2x", "l2y", "l2z", "glx", "gly", "glz",
-         "abx", "aby", "abz", "rest_e", "acc_e", "mag_e", "mag_norm_ref", "mag_sin_dip_ref",
-         "w_mag", "w_acc", "w_rest", "psi")
+_ROWS = (
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "bx",
+    "by",
+    "bz",
+    "l1x",
+    "l1y",
+    "l1z",
+    "l2x",
+    "l2y",
+    "l2z",
+    "glx",
+    "gly",
+    "glz",
+    "abx",
+    "aby",
+    "abz",
+    "rest_e",
+    "acc_e",
+    "mag_e",
+    "mag_norm_ref",
+    "mag_sin_dip_ref",
+    "w_mag",
+    "w_acc",
+    "w_rest",
+    "psi",
+)
 _N_STATE = 24
 #: Anti-windup of the motion-bias integrator: saturation of a step's acc correction (rad) it integrates (far
 #: above its values in steady operation, ~1e-4 rad per step).
@@ -314,8 +398,32 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     acc, mag; NaN = missing). Returns the tuple of _ROWS: the new state, then this step's diagnostics. (Tuples of
     components, never one packed array: slicing a packed array turns into pads in the reverse pass, which XLA
     computes very slowly.)"""
-    (qw, qx, qy, qz, bx, by, bz, l1x, l1y, l1z, l2x, l2y, l2z, glx, gly, glz, abx, aby, abz, rest_e, acc_e, mag_e,
-     mref, sref) = s
+    (
+        qw,
+        qx,
+        qy,
+        qz,
+        bx,
+        by,
+        bz,
+        l1x,
+        l1y,
+        l1z,
+        l2x,
+        l2y,
+        l2z,
+        glx,
+        gly,
+        glz,
+        abx,
+        aby,
+        abz,
+        rest_e,
+        acc_e,
+        mag_e,
+        mref,
+        sref,
+    ) = s
     gx, gy, gz = g
     ax, ay, az = a
     mx, my, mz = m
@@ -335,8 +443,9 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     abx, aby, abz = abx + kra * (ax - abx), aby + kra * (ay - aby), abz + kra * (az - abz)
     dgx, dgy, dgz = gx - glx, gy - gly, gz - glz
     dax, day, daz = ax - abx, ay - aby, az - abz
-    e_rest = ((dgx * dgx + dgy * dgy + dgz * dgz) * c.inv_rest_gyr2
-              + (dax * dax + day * day + daz * daz) * c.inv_rest_acc2)
+    e_rest = (dgx * dgx + dgy * dgy + dgz * dgz) * c.inv_rest_gyr2 + (
+        dax * dax + day * day + daz * daz
+    ) * c.inv_rest_acc2
     rest_e = _hold(rest_e, e_rest, c.dec_rest)
     w_rest = _gate(rest_e, c)
     anorm = jnp.sqrt(ax * ax + ay * ay + az * az)
@@ -388,7 +497,9 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     theta = w_mag * c.k_mag * psi  # |theta| <= pi dt / tau_mag per step
     kref = w_mag * c.k_mag_ref
     mref, sref = mref + kref * (mnorm - mref), sref + kref * (sdip - sref)
-    qw, qx, qy, qz = so3.quat_multiply_parts((one, zero, zero, 0.5 * theta), qa)  # small rotation about z, to first order
+    qw, qx, qy, qz = so3.quat_multiply_parts(
+        (one, zero, zero, 0.5 * theta), qa
+    )  # small rotation about z, to first order
     inv_n = 1.0 / jnp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     # the same rotation for the low-pass states: (1, 0, 0, theta / 2) / |.| turns by phi with
     # cos(phi) = (1 - theta^2 / 4) / (1 + theta^2 / 4), sin(phi) = theta / (1 + theta^2 / 4)
@@ -406,22 +517,71 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     by = jnp.clip(by - pby, -c.bias_max, c.bias_max)
     bz = jnp.clip(bz - pbz, -c.bias_max, c.bias_max)
 
-    return (qw * inv_n, qx * inv_n, qy * inv_n, qz * inv_n, bx, by, bz, ct * l1x - st * l1y, st * l1x + ct * l1y,
-            l1z, ct * l2x - st * l2y, st * l2x + ct * l2y, l2z, glx, gly, glz, abx, aby, abz, rest_e, acc_e, mag_e,
-            mref, sref, w_mag, w_acc, w_rest, psi)
+    return (
+        qw * inv_n,
+        qx * inv_n,
+        qy * inv_n,
+        qz * inv_n,
+        bx,
+        by,
+        bz,
+        ct * l1x - st * l1y,
+        st * l1x + ct * l1y,
+        l1z,
+        ct * l2x - st * l2y,
+        st * l2x + ct * l2y,
+        l2z,
+        glx,
+        gly,
+        glz,
+        abx,
+        aby,
+        abz,
+        rest_e,
+        acc_e,
+        mag_e,
+        mref,
+        sref,
+        w_mag,
+        w_acc,
+        w_rest,
+        psi,
+    )
 
 
 def _flatten_state(s: State) -> tuple:
     sp = lambda v: tuple(v[..., i] for i in range(v.shape[-1]))  # noqa: E731
-    return (*sp(s.q), *sp(s.bias), *sp(s.acc_lp), *sp(s.acc_lp2), *sp(s.gyr_lp), *sp(s.acc_lp_body), s.rest_e,
-            s.acc_e, s.mag_e, s.mag_norm_ref, s.mag_sin_dip_ref)
+    return (
+        *sp(s.q),
+        *sp(s.bias),
+        *sp(s.acc_lp),
+        *sp(s.acc_lp2),
+        *sp(s.gyr_lp),
+        *sp(s.acc_lp_body),
+        s.rest_e,
+        s.acc_e,
+        s.mag_e,
+        s.mag_norm_ref,
+        s.mag_sin_dip_ref,
+    )
 
 
 def _unflatten_state(t, f) -> State:
     st = lambda i, j: jnp.stack(f[i:j], axis=-1)  # noqa: E731
-    return State(t=t, q=st(0, 4), bias=st(4, 7), acc_lp=st(7, 10), acc_lp2=st(10, 13), gyr_lp=st(13, 16),
-                 acc_lp_body=st(16, 19), rest_e=f[19], acc_e=f[20], mag_e=f[21], mag_norm_ref=f[22],
-                 mag_sin_dip_ref=f[23])
+    return State(
+        t=t,
+        q=st(0, 4),
+        bias=st(4, 7),
+        acc_lp=st(7, 10),
+        acc_lp2=st(10, 13),
+        gyr_lp=st(13, 16),
+        acc_lp_body=st(16, 19),
+        rest_e=f[19],
+        acc_e=f[20],
+        mag_e=f[21],
+        mag_norm_ref=f[22],
+        mag_sin_dip_ref=f[23],
+    )
 
 
 def _split3(v):
@@ -457,11 +617,20 @@ def _init(p: Params, sample: ImuSample) -> State:
     sdip = jnp.sum(mag_s * so3.unit(acc_s), axis=-1) / mnorm  # sin(dip) = m . up / |m|
     anorm = jnp.sqrt(jnp.sum(acc_s * acc_s, axis=-1))
     zero = jnp.zeros_like(anorm)
-    return State(t=jnp.asarray(sample.t, dtype), q=q0, bias=jnp.zeros_like(acc_s),
-                 acc_lp=jnp.stack([zero, zero, anorm], axis=-1), acc_lp2=jnp.stack([zero, zero, anorm], axis=-1),
-                 gyr_lp=jnp.where(jnp.isfinite(gyr), gyr, 0.0), acc_lp_body=acc_s,
-                 rest_e=jnp.full_like(anorm, 2.0), acc_e=zero, mag_e=zero,
-                 mag_norm_ref=mnorm, mag_sin_dip_ref=sdip)
+    return State(
+        t=jnp.asarray(sample.t, dtype),
+        q=q0,
+        bias=jnp.zeros_like(acc_s),
+        acc_lp=jnp.stack([zero, zero, anorm], axis=-1),
+        acc_lp2=jnp.stack([zero, zero, anorm], axis=-1),
+        gyr_lp=jnp.where(jnp.isfinite(gyr), gyr, 0.0),
+        acc_lp_body=acc_s,
+        rest_e=jnp.full_like(anorm, 2.0),
+        acc_e=zero,
+        mag_e=zero,
+        mag_norm_ref=mnorm,
+        mag_sin_dip_ref=sdip,
+    )
 
 
 def _step(p: Params, s: State, sample, dt):
@@ -478,9 +647,19 @@ def _step(p: Params, s: State, sample, dt):
     t = s.t + c.dt
     new = _unflatten_state(t, f)
     w_mag, w_acc, w_rest, psi = f[_N_STATE:]
-    out = Out(t=t, q=new.q, r=so3.quat_to_matrix(new.q), bias=new.bias, mag_disturbed=w_mag < 0.5,
-              acc_rejected=w_acc < 0.5, rest=w_rest > 0.5, mag_weight=w_mag, acc_weight=w_acc, rest_weight=w_rest,
-              heading_error=psi)
+    out = Out(
+        t=t,
+        q=new.q,
+        r=so3.quat_to_matrix(new.q),
+        bias=new.bias,
+        mag_disturbed=w_mag < 0.5,
+        acc_rejected=w_acc < 0.5,
+        rest=w_rest > 0.5,
+        mag_weight=w_mag,
+        acc_weight=w_acc,
+        rest_weight=w_rest,
+        heading_error=psi,
+    )
     return new, out
 
 
@@ -489,11 +668,22 @@ def _output(p: Params, s: State) -> Out:
     dtype = s.q.dtype
     lo = jax.nn.sigmoid(-jnp.asarray(p.gate_sharpness, dtype))
     c = Coeffs(*([jnp.zeros((), dtype)] * len(Coeffs._fields)))._replace(
-        sharpness=jnp.asarray(p.gate_sharpness, dtype), gate_lo=lo, gate_scale=1.0 / (1.0 - 2.0 * lo))
+        sharpness=jnp.asarray(p.gate_sharpness, dtype), gate_lo=lo, gate_scale=1.0 / (1.0 - 2.0 * lo)
+    )
     w_mag, w_acc, w_rest = _gate(s.mag_e, c), _gate(s.acc_e, c), _gate(s.rest_e, c)
-    return Out(t=s.t, q=s.q, r=so3.quat_to_matrix(s.q), bias=s.bias, mag_disturbed=w_mag < 0.5,
-               acc_rejected=w_acc < 0.5, rest=w_rest > 0.5, mag_weight=w_mag, acc_weight=w_acc, rest_weight=w_rest,
-               heading_error=jnp.zeros_like(s.mag_e))
+    return Out(
+        t=s.t,
+        q=s.q,
+        r=so3.quat_to_matrix(s.q),
+        bias=s.bias,
+        mag_disturbed=w_mag < 0.5,
+        acc_rejected=w_acc < 0.5,
+        rest=w_rest > 0.5,
+        mag_weight=w_mag,
+        acc_weight=w_acc,
+        rest_weight=w_rest,
+        heading_error=jnp.zeros_like(s.mag_e),
+    )
 
 
 _OBSERVER = Observer(_init, _step, "robust_ahrs", _output)
@@ -522,15 +712,43 @@ def check_params(p: Params) -> None:
             raise ValueError(f"robust AHRS parameter {name} must be a finite positive number, got {v}")
 
 
-_UNITS = dict(tau_acc="s", tau_acc_2="s", tau_mag="s", tau_bias="s", tau_bias_rest="s", tau_rest="s",
-              rest_hold="s", rest_th_gyr="rad/s", rest_th_acc="m/s^2", acc_th="m/s^2", acc_hold="s",
-              mag_norm_th="1", mag_dip_th="rad", mag_hold="s", tau_mag_ref="s", gravity="m/s^2", gate_sharpness="1",
-              bias_max="rad/s")
+_UNITS = dict(
+    tau_acc="s",
+    tau_acc_2="s",
+    tau_mag="s",
+    tau_bias="s",
+    tau_bias_rest="s",
+    tau_rest="s",
+    rest_hold="s",
+    rest_th_gyr="rad/s",
+    rest_th_acc="m/s^2",
+    acc_th="m/s^2",
+    acc_hold="s",
+    mag_norm_th="1",
+    mag_dip_th="rad",
+    mag_hold="s",
+    tau_mag_ref="s",
+    gravity="m/s^2",
+    gate_sharpness="1",
+    bias_max="rad/s",
+)
 _BOUNDS = dict(
-    tau_acc=(0.05, 30.0), tau_acc_2=(1e-3, 30.0), tau_mag=(0.5, 200.0), tau_bias=(1.0, 1e4),
-    tau_bias_rest=(0.1, 100.0), tau_rest=(0.05, 10.0), rest_hold=(0.05, 20.0),
-    rest_th_gyr=(0.1 * _DEG, 20 * _DEG), rest_th_acc=(0.02, 5.0), acc_th=(0.5, 200.0), acc_hold=(0.005, 5.0),
-    mag_norm_th=(0.01, 2.0), mag_dip_th=(0.5 * _DEG, 90 * _DEG), mag_hold=(0.01, 20.0), tau_mag_ref=(1.0, 1e4))
+    tau_acc=(0.05, 30.0),
+    tau_acc_2=(1e-3, 30.0),
+    tau_mag=(0.5, 200.0),
+    tau_bias=(1.0, 1e4),
+    tau_bias_rest=(0.1, 100.0),
+    tau_rest=(0.05, 10.0),
+    rest_hold=(0.05, 20.0),
+    rest_th_gyr=(0.1 * _DEG, 20 * _DEG),
+    rest_th_acc=(0.02, 5.0),
+    acc_th=(0.5, 200.0),
+    acc_hold=(0.005, 5.0),
+    mag_norm_th=(0.01, 2.0),
+    mag_dip_th=(0.5 * _DEG, 90 * _DEG),
+    mag_hold=(0.01, 20.0),
+    tau_mag_ref=(1.0, 1e4),
+)
 
 
 def _param_docs() -> dict:
@@ -548,11 +766,21 @@ def _param_docs() -> dict:
 
 _DOCS = _param_docs()
 
-ENTRIES = (registry.Entry(
-    name="robust",
-    summary="real-data 9D AHRS: inclination from low-passed acc, heading from mag only, rest-based bias, learnable "
-            "magnetic-disturbance and acceleration gates; ships gains tuned on BROAD",
-    reference="Mahony et al. 2008 / Trumpf et al. 2012 structure, VQF-style gating (Laidig & Seel 2023)",
-    make=make_observer, default_params=default_params,
-    gains=tuple(registry.Gain(f, _UNITS[f], _DOCS[f], "positive", f in TUNABLE, _BOUNDS.get(f)) for f in PARAM_NAMES),
-    frame="ENU", hold="next", shipped="robust_broad_all.json", module="robust_ahrs", check=check_params),)
+ENTRIES = (
+    registry.Entry(
+        name="robust",
+        summary="real-data 9D AHRS: inclination from low-passed acc, heading from mag only, rest-based bias, learnable "
+        "magnetic-disturbance and acceleration gates; ships gains tuned on BROAD",
+        reference="Mahony et al. 2008 / Trumpf et al. 2012 structure, VQF-style gating (Laidig & Seel 2023)",
+        make=make_observer,
+        default_params=default_params,
+        gains=tuple(
+            registry.Gain(f, _UNITS[f], _DOCS[f], "positive", f in TUNABLE, _BOUNDS.get(f)) for f in PARAM_NAMES
+        ),
+        frame="ENU",
+        hold="next",
+        shipped="robust_broad_all.json",
+        module="robust_ahrs",
+        check=check_params,
+    ),
+)

@@ -27,6 +27,7 @@ Noise channels per sample (standard normals from jaxatt.sim.imu's block stream):
 acc selectors (3), mag selectors (3). A selector z picks the wide component when z < ndtri(mix_prob), an exact
 Bernoulli(mix_prob) draw, so switching the mixture on or off leaves the other channels' numbers unchanged.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -41,8 +42,18 @@ from ..integrate import magnus4_step
 from ..types import ImuSample
 from .trajectories import SinusoidRates
 
-__all__ = ["AhrsScenario", "AhrsTruth", "N_CHANNELS", "PAPER_GRAVITY", "PAPER_MAG_NED_G", "PAPER_GYRO_BIAS",
-           "nlio_rates", "random_euler_rotation", "mixed_noise_variance", "MIX_MODES"]
+__all__ = [
+    "AhrsScenario",
+    "AhrsTruth",
+    "N_CHANNELS",
+    "PAPER_GRAVITY",
+    "PAPER_MAG_NED_G",
+    "PAPER_GYRO_BIAS",
+    "nlio_rates",
+    "random_euler_rotation",
+    "mixed_noise_variance",
+    "MIX_MODES",
+]
 
 MIX_MODES = ("mixture", "sum")
 
@@ -133,11 +144,25 @@ class AhrsScenario(NamedTuple):
     n_channels = N_CHANNELS  # standard-normal numbers drawn per sample (simulator interface)
 
     @classmethod
-    def make(cls, *, rates=None, r0=None, gravity: float = PAPER_GRAVITY, acc_ref_nav=None,
-             mag_ref_nav=PAPER_MAG_NED_G, gyro_bias=PAPER_GYRO_BIAS, gyro_noise_std: float = 1e-3,
-             acc_noise_std: float = 5e-3 * PAPER_GRAVITY, mag_noise_std: float = 8e-3, mix_prob: float = 0.0,
-             mix_scale: float = 10.0, mix: str = "mixture", burst=None, noise_scale: float = 1.0,
-             dtype=None) -> "AhrsScenario":
+    def make(
+        cls,
+        *,
+        rates=None,
+        r0=None,
+        gravity: float = PAPER_GRAVITY,
+        acc_ref_nav=None,
+        mag_ref_nav=PAPER_MAG_NED_G,
+        gyro_bias=PAPER_GYRO_BIAS,
+        gyro_noise_std: float = 1e-3,
+        acc_noise_std: float = 5e-3 * PAPER_GRAVITY,
+        mag_noise_std: float = 8e-3,
+        mix_prob: float = 0.0,
+        mix_scale: float = 10.0,
+        mix: str = "mixture",
+        burst=None,
+        noise_scale: float = 1.0,
+        dtype=None,
+    ) -> "AhrsScenario":
         """Build a scenario with Section 5's defaults (Case 1 noise); ``burst=(start, end, scale)`` or None;
         ``mix`` = "mixture" or "sum" (reading of the mixed-Gaussian noise).
 
@@ -146,16 +171,26 @@ class AhrsScenario(NamedTuple):
         acc_ref = np.array([0.0, 0.0, gravity]) if acc_ref_nav is None else np.asarray(acc_ref_nav, float)
         b0, b1, bs = (0.0, 0.0, 1.0) if burst is None else tuple(float(x) for x in burst)
         r0 = np.eye(3) if r0 is None else np.asarray(r0, float)
-        for name, v, shape in (("acc_ref_nav", acc_ref, (3,)), ("mag_ref_nav", np.asarray(mag_ref_nav, float), (3,)),
-                               ("gyro_bias", np.asarray(gyro_bias, float), (3,)), ("r0", r0, (3, 3))):
+        for name, v, shape in (
+            ("acc_ref_nav", acc_ref, (3,)),
+            ("mag_ref_nav", np.asarray(mag_ref_nav, float), (3,)),
+            ("gyro_bias", np.asarray(gyro_bias, float), (3,)),
+            ("r0", r0, (3, 3)),
+        ):
             if v.shape != shape or not np.all(np.isfinite(v)):
                 raise ValueError(f"{name} must be a finite array of shape {shape}, got {v}")
         if np.linalg.norm(np.cross(acc_ref, np.asarray(mag_ref_nav, float))) <= 1e-9 * (
-                np.linalg.norm(acc_ref) * np.linalg.norm(np.asarray(mag_ref_nav, float))):
+            np.linalg.norm(acc_ref) * np.linalg.norm(np.asarray(mag_ref_nav, float))
+        ):
             raise ValueError("acc_ref_nav and mag_ref_nav must be non-zero and not parallel (Assumption 1)")
-        for name, v in (("gyro_noise_std", gyro_noise_std), ("acc_noise_std", acc_noise_std),
-                        ("mag_noise_std", mag_noise_std), ("mix_scale", mix_scale), ("burst scale", bs),
-                        ("noise_scale", noise_scale)):
+        for name, v in (
+            ("gyro_noise_std", gyro_noise_std),
+            ("acc_noise_std", acc_noise_std),
+            ("mag_noise_std", mag_noise_std),
+            ("mix_scale", mix_scale),
+            ("burst scale", bs),
+            ("noise_scale", noise_scale),
+        ):
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
         if mix not in MIX_MODES:
@@ -165,12 +200,23 @@ class AhrsScenario(NamedTuple):
         if not (np.isfinite(b0) and np.isfinite(b1)) or b1 < b0:
             raise ValueError(f"burst must be (start, end, scale) with start <= end, got {burst}")
         a = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-        return cls(rates=rates if rates is not None else nlio_rates(), r0=a(r0), acc_ref_nav=a(acc_ref),
-                   mag_ref_nav=a(mag_ref_nav), gyro_bias=a(gyro_bias), gyro_noise_std=a(gyro_noise_std),
-                   acc_noise_std=a(acc_noise_std), mag_noise_std=a(mag_noise_std), mix_prob=a(mix_prob),
-                   mix_scale=a(mix_scale), mix_sum=a(1.0 if mix == "sum" else 0.0), burst_start=a(b0),
-                   burst_end=a(b1), burst_scale=a(bs),
-                   noise_scale=a(noise_scale))
+        return cls(
+            rates=rates if rates is not None else nlio_rates(),
+            r0=a(r0),
+            acc_ref_nav=a(acc_ref),
+            mag_ref_nav=a(mag_ref_nav),
+            gyro_bias=a(gyro_bias),
+            gyro_noise_std=a(gyro_noise_std),
+            acc_noise_std=a(acc_noise_std),
+            mag_noise_std=a(mag_noise_std),
+            mix_prob=a(mix_prob),
+            mix_scale=a(mix_scale),
+            mix_sum=a(1.0 if mix == "sum" else 0.0),
+            burst_start=a(b0),
+            burst_end=a(b1),
+            burst_scale=a(bs),
+            noise_scale=a(noise_scale),
+        )
 
     # ----------------------------------------------------------------------------------------------------
     # Simulator interface (jaxatt.montecarlo)
@@ -178,8 +224,14 @@ class AhrsScenario(NamedTuple):
     def truth_at(self, r, t) -> AhrsTruth:
         """True quantities at time ``t`` (s) for the attitude ``r`` (body to NED)."""
         rt = jnp.swapaxes(r, -1, -2)
-        return AhrsTruth(t, r, self.rates.rate(t), so3.mv(rt, self.acc_ref_nav), so3.mv(rt, self.mag_ref_nav),
-                         jnp.broadcast_to(self.gyro_bias, jnp.shape(r)[:-2] + (3,)))
+        return AhrsTruth(
+            t,
+            r,
+            self.rates.rate(t),
+            so3.mv(rt, self.acc_ref_nav),
+            so3.mv(rt, self.mag_ref_nav),
+            jnp.broadcast_to(self.gyro_bias, jnp.shape(r)[:-2] + (3,)),
+        )
 
     def propagate(self, r, t, dt):
         """True attitude at ``t + dt`` from ``r`` at ``t`` (4th-order Magnus step with the exact omega(t))."""

@@ -3,12 +3,12 @@
 Frames: NED (north, east, down) is the frame of the papers' simulations; ENU is BROAD's and VQF's. Convert
 with :func:`ned_to_enu` at the edges, never by guessing.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-__all__ = ["EARTH_RATE", "GRAVITY", "earth_rate_ned", "ned_to_enu", "LISBON_LATITUDE_DEG",
-           "LISBON_FIELD_NED_NT"]
+__all__ = ["EARTH_RATE", "GRAVITY", "earth_rate_ned", "ned_to_enu", "LISBON_LATITUDE_DEG", "LISBON_FIELD_NED_NT"]
 
 #: Norm of the Earth's rotation rate (rad/s), WGS-84 (batista2019-ges Section IV).
 EARTH_RATE = 7.2921150e-5

@@ -12,6 +12,7 @@ Noise comes from explicit PRNG keys. The stream of one run depends only on its k
 uses ``fold_in(key, INIT_BLOCK)``. Generating whole blocks vectorises well; the block length is part of the
 stream's definition, so runs do not depend on batch size or on how a run is chunked.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -24,8 +25,17 @@ from .. import so3
 from ..integrate import magnus4_step
 from ..types import ImuSample
 
-__all__ = ["ImuScenario", "Truth", "NOISE_BLOCK", "arw_deg_per_hour_to_rad", "sample_sensors", "noise_block",
-           "initial_noise", "truth_at", "N_CHANNELS"]
+__all__ = [
+    "ImuScenario",
+    "Truth",
+    "NOISE_BLOCK",
+    "arw_deg_per_hour_to_rad",
+    "sample_sensors",
+    "noise_block",
+    "initial_noise",
+    "truth_at",
+    "N_CHANNELS",
+]
 
 NOISE_BLOCK = 1000
 INIT_BLOCK = 2**31 - 1

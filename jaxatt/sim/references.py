@@ -1,6 +1,6 @@
-"""Scenarios of Trumpf et al. (2012) (IEEE TAC 2012, "Analysis of non-linear attitude observers for time-varying reference measurements"):
-vector measurements of possibly time-varying reference directions, as pure-JAX generators of the true
-attitude and :class:`jaxatt.types.VectorSample` logs.
+"""Scenarios of Trumpf et al. (IEEE TAC 2012, "Analysis of non-linear attitude observers for time-varying
+reference measurements"): vector measurements of possibly time-varying reference directions, as pure-JAX
+generators of the true attitude and :class:`jaxatt.types.VectorSample` logs.
 
 Frames: an abstract inertial frame {A} and the body frame {B}; R (body to inertial) follows dR/dt = R S(Omega)
 (eq. 1) from R(0) = ``r0`` with the exact Omega(t) of the profile (4th-order Magnus steps). Measurements:
@@ -27,6 +27,7 @@ the complementary observer on it fused with the simulation (``errors_fn=vector_e
 error). Both paths share :meth:`VectorScenario.sample`; their noise streams differ (explicit key here,
 the runner's per-run block stream there).
 """
+
 from __future__ import annotations
 
 import math
@@ -41,9 +42,22 @@ from ..integrate import magnus4_step
 from ..types import VectorSample
 from .trajectories import SinusoidRates
 
-__all__ = ["Directions", "VectorScenario", "VectorTruth", "vector_errors", "rotating_reference",
-           "switching_reference", "constant_reference", "two_constant_references", "body_fixed_reference",
-           "SCENARIOS", "make_scenario", "simulate_vectors", "body_rates", "constant_directions"]
+__all__ = [
+    "Directions",
+    "VectorScenario",
+    "VectorTruth",
+    "vector_errors",
+    "rotating_reference",
+    "switching_reference",
+    "constant_reference",
+    "two_constant_references",
+    "body_fixed_reference",
+    "SCENARIOS",
+    "make_scenario",
+    "simulate_vectors",
+    "body_rates",
+    "constant_directions",
+]
 
 
 class Directions(NamedTuple):
@@ -159,16 +173,20 @@ class VectorScenario(NamedTuple):
         br = self.ref_body.at(truth.t)
         rt = jnp.swapaxes(truth.r, -1, -2)
         gyr = truth.omega + self.gyro_bias + self.gyro_noise_std * noise[..., 0:3]
-        a = so3.mv(rt, ar) + self.meas_noise_std * noise[..., 3:3 + 3 * n1].reshape(n1, 3)
-        b = so3.mv(truth.r, br) + self.meas_noise_std * noise[..., 3 + 3 * n1:].reshape(n2, 3)
+        a = so3.mv(rt, ar) + self.meas_noise_std * noise[..., 3 : 3 + 3 * n1].reshape(n1, 3)
+        b = so3.mv(truth.r, br) + self.meas_noise_std * noise[..., 3 + 3 * n1 :].reshape(n2, 3)
         return VectorSample(truth.t, gyr, a, ar, b, br)
 
 
 # ------------------------------------------------------------------------------------------------------
 # Constructors (plain floats in)
 # ------------------------------------------------------------------------------------------------------
-def body_rates(amplitude_deg_s=(10.0, 6.0, 8.0), period_s=(20.0, 30.0, 45.0), offset_deg_s=(0.0, 0.0, 0.0),
-               phase_deg=(0.0, 0.0, 0.0)) -> SinusoidRates:
+def body_rates(
+    amplitude_deg_s=(10.0, 6.0, 8.0),
+    period_s=(20.0, 30.0, 45.0),
+    offset_deg_s=(0.0, 0.0, 0.0),
+    phase_deg=(0.0, 0.0, 0.0),
+) -> SinusoidRates:
     """omega_i(t) = A_i sin(2 pi t / P_i + phase_i) + offset_i (body frame), amplitudes in deg/s."""
     return SinusoidRates(
         amplitude=jnp.asarray(np.deg2rad(np.asarray(amplitude_deg_s, float))),
@@ -187,8 +205,17 @@ def _triple(x, name) -> np.ndarray:
     return v
 
 
-def _scenario(ref_inertial: Directions, ref_body: Directions, rates, *, r0_euler_deg, gyro_bias_deg_s,
-              gyro_noise_std, meas_noise_std, dtype) -> VectorScenario:
+def _scenario(
+    ref_inertial: Directions,
+    ref_body: Directions,
+    rates,
+    *,
+    r0_euler_deg,
+    gyro_bias_deg_s,
+    gyro_noise_std,
+    meas_noise_std,
+    dtype,
+) -> VectorScenario:
     if ref_inertial.n + ref_body.n < 1:
         raise ValueError("a scenario needs at least one measurement")
     for name, v in (("gyro_noise_std", gyro_noise_std), ("meas_noise_std", meas_noise_std)):
@@ -196,8 +223,15 @@ def _scenario(ref_inertial: Directions, ref_body: Directions, rates, *, r0_euler
             raise ValueError(f"{name} must be finite and non-negative, got {v}")
     e = np.deg2rad(_triple(r0_euler_deg, "r0_euler_deg"))
     r0 = np.asarray(so3.euler_zyx_to_matrix(e[0], e[1], e[2]))
-    scn = VectorScenario(rates, r0, ref_inertial, ref_body, np.deg2rad(_triple(gyro_bias_deg_s, "gyro_bias_deg_s")),
-                         np.asarray(float(gyro_noise_std)), np.asarray(float(meas_noise_std)))
+    scn = VectorScenario(
+        rates,
+        r0,
+        ref_inertial,
+        ref_body,
+        np.deg2rad(_triple(gyro_bias_deg_s, "gyro_bias_deg_s")),
+        np.asarray(float(gyro_noise_std)),
+        np.asarray(float(meas_noise_std)),
+    )
     dtype = dtype or jnp.result_type(float)
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scn)
 
@@ -206,10 +240,13 @@ _NONE = constant_directions(np.zeros((0, 3)))
 
 
 def _common(kw):
-    return dict(r0_euler_deg=kw.pop("r0_euler_deg", (20.0, -10.0, 30.0)),
-                gyro_bias_deg_s=kw.pop("gyro_bias_deg_s", 0.0),
-                gyro_noise_std=kw.pop("gyro_noise_std", 0.0), meas_noise_std=kw.pop("meas_noise_std", 0.0),
-                dtype=kw.pop("dtype", None))
+    return dict(
+        r0_euler_deg=kw.pop("r0_euler_deg", (20.0, -10.0, 30.0)),
+        gyro_bias_deg_s=kw.pop("gyro_bias_deg_s", 0.0),
+        gyro_noise_std=kw.pop("gyro_noise_std", 0.0),
+        meas_noise_std=kw.pop("meas_noise_std", 0.0),
+        dtype=kw.pop("dtype", None),
+    )
 
 
 _DOC_COMMON = """
@@ -226,8 +263,13 @@ def rotating_reference(rate_deg_s: float = 30.0, tilt_deg: float = 60.0, **kw) -
     rates = kw.pop("rates", None) or body_rates()
     _no_extra(kw)
     th = np.deg2rad(float(tilt_deg))
-    d = Directions(np.array([[np.sin(th), 0.0, np.cos(th)]]), np.array([[np.sin(th), 0.0, np.cos(th)]]),
-                   np.array([[0.0, 0.0, 1.0]]), np.array([np.deg2rad(float(rate_deg_s))]), np.array([np.inf]))
+    d = Directions(
+        np.array([[np.sin(th), 0.0, np.cos(th)]]),
+        np.array([[np.sin(th), 0.0, np.cos(th)]]),
+        np.array([[0.0, 0.0, 1.0]]),
+        np.array([np.deg2rad(float(rate_deg_s))]),
+        np.array([np.inf]),
+    )
     return _scenario(d, _NONE, rates, **c)
 
 
@@ -243,8 +285,13 @@ def switching_reference(half_period_s: float = 5.0, angle_deg: float = 90.0, **k
     if not float(half_period_s) > 0:
         raise ValueError(f"half_period_s must be positive, got {half_period_s}")
     a = np.deg2rad(float(angle_deg))
-    d = Directions(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, -np.sin(a), np.cos(a)]]), np.array([[0.0, 0.0, 1.0]]),
-                   np.zeros(1), np.array([float(half_period_s)]))
+    d = Directions(
+        np.array([[0.0, 0.0, 1.0]]),
+        np.array([[0.0, -np.sin(a), np.cos(a)]]),
+        np.array([[0.0, 0.0, 1.0]]),
+        np.zeros(1),
+        np.array([float(half_period_s)]),
+    )
     return _scenario(d, _NONE, rates, **c)
 
 
@@ -276,14 +323,16 @@ def two_constant_references(angle_deg: float = 60.0, **kw) -> VectorScenario:
 two_constant_references.__doc__ += _DOC_COMMON
 
 
-def body_fixed_reference(direction=(0.0, 0.0, 1.0), rate_deg_s: float = 20.0, wobble_deg_s: float = 5.0,
-                         **kw) -> VectorScenario:
+def body_fixed_reference(
+    direction=(0.0, 0.0, 1.0), rate_deg_s: float = 20.0, wobble_deg_s: float = 5.0, **kw
+) -> VectorScenario:
     """(d) One constant body-fixed direction b̊ (compatible measurement b = R b̊, e.g. a GPS baseline), the
     body turning at ``rate_deg_s`` about body x plus a sinusoidal wobble of amplitude ``wobble_deg_s`` on
     each axis. With b̊ = e3 the condition of the end of Section III, ||∫ Omega x b̊|| > 0, holds."""
     c = _common(kw)
-    rates = kw.pop("rates", None) or body_rates(amplitude_deg_s=(wobble_deg_s,) * 3,
-                                                offset_deg_s=(rate_deg_s, 0.0, 0.0))
+    rates = kw.pop("rates", None) or body_rates(
+        amplitude_deg_s=(wobble_deg_s,) * 3, offset_deg_s=(rate_deg_s, 0.0, 0.0)
+    )
     _no_extra(kw)
     return _scenario(_NONE, constant_directions(direction), rates, **c)
 

@@ -3,6 +3,7 @@
 A profile is any pytree with ``rate(t) -> omega`` (rad/s, body frame); :class:`SinusoidRates` covers the
 papers' profiles, :class:`FunctionRates` wraps a user function of t.
 """
+
 from __future__ import annotations
 
 from typing import Callable, NamedTuple

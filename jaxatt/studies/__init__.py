@@ -5,6 +5,7 @@ scenario, compared observers, errors, published numbers and tables; :func:`get` 
 * ``nlio-case1`` ... ``nlio-case4``, ``nlio-simb``: Section 5 of the sensors2020 NLIO paper.
 * ``complementary``: Trumpf et al. (2012) on the vector-measurement scenarios of :mod:`jaxatt.sim.references`.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -14,8 +15,16 @@ from .base import Setup, Study, evaluate, reproduce
 __all__ = ["Study", "Setup", "reproduce", "evaluate", "get", "NAMES", "PAPER_STUDIES", "TUNABLE"]
 
 #: study name -> module (imported on first use).
-_MODULES = {"batista-ges": "batista_ges", "batista-so3": "batista_so3", "nlio-case1": "nlio", "nlio-case2": "nlio",
-            "nlio-case3": "nlio", "nlio-case4": "nlio", "nlio-simb": "nlio", "complementary": "complementary"}
+_MODULES = {
+    "batista-ges": "batista_ges",
+    "batista-so3": "batista_so3",
+    "nlio-case1": "nlio",
+    "nlio-case2": "nlio",
+    "nlio-case3": "nlio",
+    "nlio-case4": "nlio",
+    "nlio-simb": "nlio",
+    "complementary": "complementary",
+}
 NAMES = tuple(_MODULES)
 #: The studies with published numbers (``jaxatt reproduce``).
 PAPER_STUDIES = tuple(n for n in NAMES if n != "complementary")

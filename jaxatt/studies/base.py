@@ -14,6 +14,7 @@ JSON layout of :func:`reproduce` / :func:`evaluate` (stable keys): ``experiment`
 timing}`` and, when one observer is compared, ``metrics.<name>.{mean, std, min, max, per_run}`` at the top; the
 study may add its own keys (the NLIO tables: ``observers.<label>.mae`` / ``.rmse``).
 """
+
 from __future__ import annotations
 
 import abc
@@ -156,10 +157,26 @@ class Study(abc.ABC):
     def setup(self, **overrides) -> Setup:
         cfg = self.config(**overrides)
         obs, params = self.observers(cfg)[self.tuned]
-        return Setup(self.name, cfg, self.scenario(cfg), obs, params, self.entry, self.errors, float(cfg.duration),
-                     float(cfg.dt), self.hold(cfg), tuple(self.windows(cfg)), self.window_start(cfg),
-                     self.init_params(cfg), self.loss_kind, self.loss_windows(cfg), self.check_params,
-                     self.published(cfg), self.notes(cfg))
+        return Setup(
+            self.name,
+            cfg,
+            self.scenario(cfg),
+            obs,
+            params,
+            self.entry,
+            self.errors,
+            float(cfg.duration),
+            float(cfg.dt),
+            self.hold(cfg),
+            tuple(self.windows(cfg)),
+            self.window_start(cfg),
+            self.init_params(cfg),
+            self.loss_kind,
+            self.loss_windows(cfg),
+            self.check_params,
+            self.published(cfg),
+            self.notes(cfg),
+        )
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -177,8 +194,10 @@ def table(rows: Sequence[Tuple[str, str]], payload: dict, units: Mapping[str, st
         m = units.get(key, "")
         pv = paper.get(key)
         ratio = f"{meas['mean'] / pv:7.2f}" if (pv and meas) else ""
-        lines.append(f"{label + (' [' + m + ']' if m else ''):34s} {pv if pv is not None else '-':>10} "
-                     f"{meas['mean']:12.4g} {meas['std']:16.3g} {ratio}")
+        lines.append(
+            f"{label + (' [' + m + ']' if m else ''):34s} {pv if pv is not None else '-':>10} "
+            f"{meas['mean']:12.4g} {meas['std']:16.3g} {ratio}"
+        )
     return "\n".join(lines)
 
 
@@ -198,10 +217,22 @@ def _first_nonfinite(per_run: Mapping[str, np.ndarray], run_indices) -> Optional
     return None
 
 
-def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, dtype=None,
-              json_path: Optional[str] = None, plot_path: Optional[str] = None, quiet: bool = False,
-              progress=None, title: Optional[str] = None, observers: Optional[Mapping[str, Tuple[Any, Any]]] = None,
-              extra: Optional[dict] = None) -> dict:
+def reproduce(
+    study: Study,
+    cfg,
+    *,
+    runs: int,
+    seed: int = 0,
+    chunk: int = 250,
+    dtype=None,
+    json_path: Optional[str] = None,
+    plot_path: Optional[str] = None,
+    quiet: bool = False,
+    progress=None,
+    title: Optional[str] = None,
+    observers: Optional[Mapping[str, Tuple[Any, Any]]] = None,
+    extra: Optional[dict] = None,
+) -> dict:
     """Monte Carlo of every compared observer of ``study`` at ``cfg``: prints the study's tables beside the
     paper's numbers, writes the JSON (see the module docstring) after every chunk and at the end, and the figure.
 
@@ -223,10 +254,19 @@ def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, 
     why = study.comparable(cfg)
     n_steps = int(round(cfg.duration / cfg.dt))
     dtype_name = str(np.dtype(dtype)) if dtype is not None else "float64"
-    payload = {"experiment": title or f"{study.name} reproduce", "study": study.name, "paper_reference": study.paper,
-               "config": {**config_dict(cfg), "runs": runs, "seed": seed, "dtype": dtype_name, "chunk": chunk},
-               "environment": io.environment(), "notes": study.notes(cfg), "paper": published,
-               "comparable_with_paper": why is None, "observers": {}, "complete": False, "runs_done": 0}
+    payload = {
+        "experiment": title or f"{study.name} reproduce",
+        "study": study.name,
+        "paper_reference": study.paper,
+        "config": {**config_dict(cfg), "runs": runs, "seed": seed, "dtype": dtype_name, "chunk": chunk},
+        "environment": io.environment(),
+        "notes": study.notes(cfg),
+        "paper": published,
+        "comparable_with_paper": why is None,
+        "observers": {},
+        "complete": False,
+        "runs_done": 0,
+    }
     if why is not None:
         payload["not_comparable_because"] = why
     payload.update(extra or {})
@@ -238,11 +278,17 @@ def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, 
         t0 = time.perf_counter()
 
         def entry(res, t0=t0):
-            e = {"runs_done": len(res.run_indices), "metrics": io.summarise(res.per_run),
-                 "timing": {"wall_s": time.perf_counter() - t0, "runs": len(res.run_indices),
-                            "steps_per_run": n_steps,
-                            "run_steps_per_s": len(res.run_indices) * n_steps / max(time.perf_counter() - t0, 1e-9),
-                            "note": "compile included"}}
+            e = {
+                "runs_done": len(res.run_indices),
+                "metrics": io.summarise(res.per_run),
+                "timing": {
+                    "wall_s": time.perf_counter() - t0,
+                    "runs": len(res.run_indices),
+                    "steps_per_run": n_steps,
+                    "run_steps_per_s": len(res.run_indices) * n_steps / max(time.perf_counter() - t0, 1e-9),
+                    "note": "compile included",
+                },
+            }
             e.update(study.entry_extra(cfg, res.per_run))
             return e
 
@@ -252,11 +298,26 @@ def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, 
             _finish(payload, complete=False)
             io.write_json(json_path, payload)
 
-        res = montecarlo.monte_carlo(study.scenario(cfg), observer, params, runs=runs, duration=cfg.duration,
-                                     dt=cfg.dt, seed=seed, errors_fn=study.errors, window_start=study.window_start(cfg),
-                                     hold=study.hold(cfg), chunk=chunk, trace_every=trace_every, trace_fn=trace_fn,
-                                     dtype=dtype, windows=study.windows(cfg), init_params=study.init_params(cfg),
-                                     on_chunk=on_chunk, progress=progress)
+        res = montecarlo.monte_carlo(
+            study.scenario(cfg),
+            observer,
+            params,
+            runs=runs,
+            duration=cfg.duration,
+            dt=cfg.dt,
+            seed=seed,
+            errors_fn=study.errors,
+            window_start=study.window_start(cfg),
+            hold=study.hold(cfg),
+            chunk=chunk,
+            trace_every=trace_every,
+            trace_fn=trace_fn,
+            dtype=dtype,
+            windows=study.windows(cfg),
+            init_params=study.init_params(cfg),
+            on_chunk=on_chunk,
+            progress=progress,
+        )
         results[label] = res
         payload["observers"][label] = entry(res)
         bad = _first_nonfinite(res.per_run, res.run_indices)
@@ -271,8 +332,10 @@ def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, 
     if len(obs) == 1:
         payload["timing"].update(next(iter(payload["observers"].values()))["timing"])
     report = study.format_report(payload)
-    head = (f"{payload['experiment']}: {payload['runs_done']} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, "
-            f"observers in {dtype_name}" + ("" if payload["complete"] else "  [INTERRUPTED: partial results]"))
+    head = (
+        f"{payload['experiment']}: {payload['runs_done']} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, "
+        f"observers in {dtype_name}" + ("" if payload["complete"] else "  [INTERRUPTED: partial results]")
+    )
     print(head)
     if why is not None:
         print(f"  NOT comparable with the paper's numbers: {why}")
@@ -281,8 +344,10 @@ def reproduce(study: Study, cfg, *, runs: int, seed: int = 0, chunk: int = 250, 
     print(report)
     payload["tables_text"] = report
     wall = payload["timing"]["wall_s"]
-    print(f"wall {wall:.1f} s, {payload['runs_done'] * n_steps * len(payload['observers']) / max(wall, 1e-9):.3g} "
-          "run-steps/s (compile included)")
+    print(
+        f"wall {wall:.1f} s, {payload['runs_done'] * n_steps * len(payload['observers']) / max(wall, 1e-9):.3g} "
+        "run-steps/s (compile included)"
+    )
     if plot_path and payload["complete"]:
         study.plot(cfg, payload, results, plot_path, dtype=dtype)
         payload["plot"] = plot_path
@@ -301,9 +366,21 @@ def _finish(payload: dict, complete: bool) -> None:
         payload["metrics"] = next(iter(entries.values()))["metrics"]
 
 
-def evaluate(study: Study, params, *, runs: int = 100, seed: int = 1, json_path: Optional[str] = None,
-             cfg=None, gains_source: str = "paper", compare_paper: bool = True, chunk: int = 250, dtype=None,
-             quiet: bool = False, extra: Optional[dict] = None) -> dict:
+def evaluate(
+    study: Study,
+    params,
+    *,
+    runs: int = 100,
+    seed: int = 1,
+    json_path: Optional[str] = None,
+    cfg=None,
+    gains_source: str = "paper",
+    compare_paper: bool = True,
+    chunk: int = 250,
+    dtype=None,
+    quiet: bool = False,
+    extra: Optional[dict] = None,
+) -> dict:
     """Monte Carlo of the study's tuned observer with ``params`` (e.g. from a gains file) on ``runs`` runs of base
     ``seed``; with ``compare_paper`` also the paper's gains on the same runs: ``paper_gains_metrics`` and
     ``comparison`` (mean of each metric, tuned / paper). Same JSON layout as :func:`reproduce`."""
@@ -315,25 +392,54 @@ def evaluate(study: Study, params, *, runs: int = 100, seed: int = 1, json_path:
     study.check_params(params)
     gains = registry.get(s.entry).gains
     obs = {study.tuned: (s.observer, params)}
-    payload = reproduce(study, cfg, runs=runs, seed=seed, chunk=chunk, dtype=dtype, json_path=json_path,
-                        quiet=quiet, title=f"{study.name} evaluate", observers=obs,
-                        extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source,
-                               **(extra or {})})
-    same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
-               zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params)))
+    payload = reproduce(
+        study,
+        cfg,
+        runs=runs,
+        seed=seed,
+        chunk=chunk,
+        dtype=dtype,
+        json_path=json_path,
+        quiet=quiet,
+        title=f"{study.name} evaluate",
+        observers=obs,
+        extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source, **(extra or {})},
+    )
+    same = all(
+        np.array_equal(np.asarray(a), np.asarray(b))
+        for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params))
+    )
     if compare_paper and not same and payload["complete"]:
-        ref = reproduce(study, cfg, runs=runs, seed=seed, chunk=chunk, dtype=dtype, json_path=None, quiet=True,
-                        title=f"{study.name} paper gains", observers={study.tuned: (s.observer, s.params)})
+        ref = reproduce(
+            study,
+            cfg,
+            runs=runs,
+            seed=seed,
+            chunk=chunk,
+            dtype=dtype,
+            json_path=None,
+            quiet=True,
+            title=f"{study.name} paper gains",
+            observers={study.tuned: (s.observer, s.params)},
+        )
         pm = ref["metrics"]
         metrics = payload["metrics"]
         payload["paper_gains_metrics"] = pm
-        payload["comparison"] = {k: {"tuned": metrics[k]["mean"], "paper_gains": pm[k]["mean"],
-                                     "ratio": (metrics[k]["mean"] / pm[k]["mean"] if pm[k]["mean"] else None)}
-                                 for k in metrics if k in pm and np.ndim(metrics[k]["mean"]) == 0}
+        payload["comparison"] = {
+            k: {
+                "tuned": metrics[k]["mean"],
+                "paper_gains": pm[k]["mean"],
+                "ratio": (metrics[k]["mean"] / pm[k]["mean"] if pm[k]["mean"] else None),
+            }
+            for k in metrics
+            if k in pm and np.ndim(metrics[k]["mean"]) == 0
+        }
         lines = [f"{'metric':34s} {'tuned':>12s} {'paper gains':>12s} {'ratio':>7s}"]
         for k, c in list(payload["comparison"].items())[:16]:
-            lines.append(f"{k:34s} {c['tuned']:12.5g} {c['paper_gains']:12.5g} "
-                         f"{(c['ratio'] if c['ratio'] is not None else float('nan')):7.3f}")
+            lines.append(
+                f"{k:34s} {c['tuned']:12.5g} {c['paper_gains']:12.5g} "
+                f"{(c['ratio'] if c['ratio'] is not None else float('nan')):7.3f}"
+            )
         print("\n".join(lines))
         io.write_json(json_path, payload)
     return payload

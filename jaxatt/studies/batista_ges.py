@@ -1,6 +1,7 @@
 """Section IV of Batista, Silvestre & Oliveira (2019, GES) as a study: scenario, observer, parameters, errors and
 the paper's published numbers (Table 2 and the Monte Carlo mean angle errors). Frames: NED (R maps body to NED);
 units: nT, rad/s, s (errors in the units of Table 2)."""
+
 from __future__ import annotations
 
 import sys
@@ -21,17 +22,32 @@ WINDOW_START = 2400.0  # s, steady-state window of Section IV
 
 #: Published numbers (batista2019-ges Section IV, Table 2; Monte Carlo of 1000 runs).
 PAPER = {
-    "slow": {"mean_angle_error_deg": 0.38, "std_x1": 17.7, "std_x2": 0.044, "std_earth_rate": 0.182,
-             "std_z2": 0.0069, "single_run_mean_angle_error_deg": 0.586},
+    "slow": {
+        "mean_angle_error_deg": 0.38,
+        "std_x1": 17.7,
+        "std_x2": 0.044,
+        "std_earth_rate": 0.182,
+        "std_z2": 0.0069,
+        "single_run_mean_angle_error_deg": 0.586,
+    },
     "aggressive": {"mean_angle_error_deg": 0.47},
 }
 UNITS = {"std_x1": "nT", "std_x2": "nT/s", "std_earth_rate": "deg/h", "std_z2": "-", "mean_angle_error_deg": "deg"}
-TABLE_ROWS = [("mean_angle_error_deg", "mean angle error t>=window"), ("std_x1", "std x1~ (Table 2)"),
-              ("std_x2", "std x2~ (Table 2)"), ("std_earth_rate", "std omega_E~ (Table 2)"),
-              ("std_z2", "std z2~ (Table 2)"), ("final_angle_error_deg", "final angle error"),
-              ("max_angle_error_deg", "max angle error t>=window")]
-PLOT_PANELS = {"norm_x1": "|x1~| (nT)", "norm_x2": "|x2~| (nT/s)", "norm_earth_rate": "|wE~| (deg/h)",
-               "norm_z2": "|z2~|"}
+TABLE_ROWS = [
+    ("mean_angle_error_deg", "mean angle error t>=window"),
+    ("std_x1", "std x1~ (Table 2)"),
+    ("std_x2", "std x2~ (Table 2)"),
+    ("std_earth_rate", "std omega_E~ (Table 2)"),
+    ("std_z2", "std z2~ (Table 2)"),
+    ("final_angle_error_deg", "final angle error"),
+    ("max_angle_error_deg", "max angle error t>=window"),
+]
+PLOT_PANELS = {
+    "norm_x1": "|x1~| (nT)",
+    "norm_x2": "|x2~| (nT/s)",
+    "norm_earth_rate": "|wE~| (deg/h)",
+    "norm_z2": "|z2~|",
+}
 
 
 class Config(NamedTuple):
@@ -74,8 +90,13 @@ def scenario(cfg: Config) -> imu.ImuScenario:
 
 def params(cfg: Config, dtype=None) -> ges.Params:
     r0 = None if cfg.r_hat_0 is None else np.asarray(cfg.r_hat_0, float).reshape(3, 3)
-    p = ges.default_params(cfg.reference_nT, np.asarray(earth.earth_rate_ned(cfg.latitude_deg)), r_hat_0=r0,
-                           epsilon=cfg.epsilon, dtype=dtype)
+    p = ges.default_params(
+        cfg.reference_nT,
+        np.asarray(earth.earth_rate_ned(cfg.latitude_deg)),
+        r_hat_0=r0,
+        epsilon=cfg.epsilon,
+        dtype=dtype,
+    )
     return p._replace(x2_0=jnp.asarray(cfg.x2_0, p.x2_0.dtype))
 
 
@@ -89,11 +110,14 @@ check_params = ges.check_params
 
 
 def notes(cfg: Config):
-    return ["x1^(0) = first magnetometer sample (reproduces the paper; --x1-init zero is the literal reading)"
-            if cfg.x1_init == "first_sample" else "x1^(0) = 0 (literal reading of Section IV)",
-            f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
-            "Q = 1e5 C2 QD C2^T read literally (QD in the z-space)",
-            "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs"]
+    return [
+        "x1^(0) = first magnetometer sample (reproduces the paper; --x1-init zero is the literal reading)"
+        if cfg.x1_init == "first_sample"
+        else "x1^(0) = 0 (literal reading of Section IV)",
+        f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
+        "Q = 1e5 C2 QD C2^T read literally (QD in the z-space)",
+        "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs",
+    ]
 
 
 def errors(truth: imu.Truth, out: ges.Out):
@@ -151,8 +175,11 @@ def check_config(cfg) -> None:
 def comparable(cfg) -> "str | None":
     """None when ``cfg`` is the set-up of the published numbers of its trajectory, else the settings that differ."""
     ref = Config(trajectory=cfg.trajectory, hold=cfg.hold, x1_init=cfg.x1_init)
-    diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
-            if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))]
+    diff = [
+        f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})"
+        for k in Config._fields
+        if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))
+    ]
     return "; ".join(diff) if diff else None
 
 
@@ -199,12 +226,29 @@ class BatistaStudy(base.Study):
         from .. import montecarlo, plot
 
         obs, p = self.observers(cfg)[self.tuned]
-        _, trace, _ = montecarlo.simulate(self.scenario(cfg), obs, p, duration=cfg.duration, dt=cfg.dt,
-                                          seed=payload["config"]["seed"], errors_fn=self.errors,
-                                          window_start=cfg.window_start, hold=cfg.hold, trace_every=10, dtype=dtype)
-        plot.convergence_figure(trace, path, title=f"{payload['experiment']} (run 0)", panels=self.mod.PLOT_PANELS,
-                                steady_from_s=cfg.window_start)
+        _, trace, _ = montecarlo.simulate(
+            self.scenario(cfg),
+            obs,
+            p,
+            duration=cfg.duration,
+            dt=cfg.dt,
+            seed=payload["config"]["seed"],
+            errors_fn=self.errors,
+            window_start=cfg.window_start,
+            hold=cfg.hold,
+            trace_every=10,
+            dtype=dtype,
+        )
+        plot.convergence_figure(
+            trace,
+            path,
+            title=f"{payload['experiment']} (run 0)",
+            panels=self.mod.PLOT_PANELS,
+            steady_from_s=cfg.window_start,
+        )
 
 
-STUDY = BatistaStudy(sys.modules[__name__], "Batista, Silvestre, Oliveira 2019 (GES attitude observer with Earth "
-                                            "velocity estimation), Section IV")
+STUDY = BatistaStudy(
+    sys.modules[__name__],
+    "Batista, Silvestre, Oliveira 2019 (GES attitude observer with Earth velocity estimation), Section IV",
+)

@@ -1,6 +1,7 @@
 """Section 4 of Batista, Silvestre & Oliveira (2019, SO(3)) as a study: the same platform, sensors and trajectory as
 the GES paper's Section IV (the scenario is shared with :mod:`jaxatt.studies.batista_ges`), the observer on SO(3),
 its errors and the paper's published numbers (Table 2 and the Monte Carlo mean angle errors). Frames: NED."""
+
 from __future__ import annotations
 
 import sys
@@ -21,16 +22,34 @@ WINDOW_START = 2400.0  # s, "computed for t >= 2400 s"
 
 #: Published numbers (batista2019-so3 Section 4, Table 2, Monte Carlo of 1000 runs; single run 0.636 deg).
 PAPER = {
-    "slow": {"mean_angle_error_deg": 0.42, "std_m": 16.6, "std_v": 1738.0, "std_r_err": 0.004,
-             "std_r_err_offdiag": 0.004, "single_run_mean_angle_error_deg": 0.636},
+    "slow": {
+        "mean_angle_error_deg": 0.42,
+        "std_m": 16.6,
+        "std_v": 1738.0,
+        "std_r_err": 0.004,
+        "std_r_err_offdiag": 0.004,
+        "single_run_mean_angle_error_deg": 0.636,
+    },
     "aggressive": {"mean_angle_error_deg": 0.51},
 }
-UNITS = {"std_m": "nT", "std_v": "nT^2/s", "std_r_err": "-", "std_r_err_offdiag": "-", "std_earth_rate": "deg/h",
-         "mean_angle_error_deg": "deg"}
-TABLE_ROWS = [("mean_angle_error_deg", "mean angle error t>=window"), ("std_m", "std m~ (Table 2)"),
-              ("std_v", "std v~ (Table 2)"), ("std_r_err", "std R~-I, 9 elements (Table 2)"),
-              ("std_r_err_offdiag", "std R~-I, 6 off-diagonal"), ("std_earth_rate", "std omega_E~"),
-              ("final_angle_error_deg", "final angle error"), ("max_angle_error_deg", "max angle error t>=window")]
+UNITS = {
+    "std_m": "nT",
+    "std_v": "nT^2/s",
+    "std_r_err": "-",
+    "std_r_err_offdiag": "-",
+    "std_earth_rate": "deg/h",
+    "mean_angle_error_deg": "deg",
+}
+TABLE_ROWS = [
+    ("mean_angle_error_deg", "mean angle error t>=window"),
+    ("std_m", "std m~ (Table 2)"),
+    ("std_v", "std v~ (Table 2)"),
+    ("std_r_err", "std R~-I, 9 elements (Table 2)"),
+    ("std_r_err_offdiag", "std R~-I, 6 off-diagonal"),
+    ("std_earth_rate", "std omega_E~"),
+    ("final_angle_error_deg", "final angle error"),
+    ("max_angle_error_deg", "max angle error t>=window"),
+]
 PLOT_PANELS = {"norm_m": "|m~| (nT)", "norm_v": "|v~| (nT^2/s)", "norm_r_err": "|R~ - I|"}
 _OFFDIAG = np.array([1, 2, 3, 5, 6, 7])
 
@@ -63,8 +82,13 @@ def scenario(cfg: Config) -> imu.ImuScenario:
 
 def params(cfg: Config, dtype=None) -> so3obs.Params:
     r0 = None if cfg.r_hat_0 is None else np.asarray(cfg.r_hat_0, float).reshape(3, 3)
-    return so3obs.default_params(cfg.reference_nT, np.asarray(earth.earth_rate_ned(cfg.latitude_deg)), r_hat_0=r0,
-                                 v_hat_0=cfg.v_hat_0, dtype=dtype)
+    return so3obs.default_params(
+        cfg.reference_nT,
+        np.asarray(earth.earth_rate_ned(cfg.latitude_deg)),
+        r_hat_0=r0,
+        v_hat_0=cfg.v_hat_0,
+        dtype=dtype,
+    )
 
 
 def observer(cfg: Config):
@@ -75,13 +99,17 @@ check_params = so3obs.check_params
 
 
 def notes(cfg: Config):
-    return [{"rescaled": "m^(0) = first magnetometer sample rescaled to |I_m| (Theorem 1; default)",
-             "first_sample": "m^(0) = first magnetometer sample (the paper's literal reading)",
-             "params": "m^(0) = params.m_hat_0"}[cfg.m_init],
-            f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
-            f"integrator: {'RKMK-4 on SO(3) (R^ stays a rotation)' if cfg.integrator == 'lie' else 'plain RK4 (paper)'}",
-            "Table 1 read as alpha1 |I_m|^2 and alpha2; alpha0 = 0.1/|I_m|^2, alpha3 = 0.02/|I_m|^2, alpha4 = 0.4/|I_v|^2",
-            "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs"]
+    return [
+        {
+            "rescaled": "m^(0) = first magnetometer sample rescaled to |I_m| (Theorem 1; default)",
+            "first_sample": "m^(0) = first magnetometer sample (the paper's literal reading)",
+            "params": "m^(0) = params.m_hat_0",
+        }[cfg.m_init],
+        f"sensor samples: {'held over each RK4 step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
+        f"integrator: {'RKMK-4 on SO(3) (R^ stays a rotation)' if cfg.integrator == 'lie' else 'plain RK4 (paper)'}",
+        "Table 1 read as alpha1 |I_m|^2 and alpha2; alpha0 = 0.1/|I_m|^2, alpha3 = 0.02/|I_m|^2, alpha4 = 0.4/|I_v|^2",
+        "metrics over t >= window_start; Table-2 stds are per-run stds averaged over elements, then over runs",
+    ]
 
 
 def errors(truth: imu.Truth, out: so3obs.Out):
@@ -107,10 +135,15 @@ def config(**overrides) -> Config:
 def comparable(cfg) -> "str | None":
     """None when ``cfg`` is the set-up of the published numbers of its trajectory, else the settings that differ."""
     ref = Config(trajectory=cfg.trajectory, hold=cfg.hold, m_init=cfg.m_init, integrator=cfg.integrator)
-    diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
-            if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))]
+    diff = [
+        f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})"
+        for k in Config._fields
+        if np.any(np.asarray(getattr(cfg, k), dtype=object) != np.asarray(getattr(ref, k), dtype=object))
+    ]
     return "; ".join(diff) if diff else None
 
 
-STUDY = batista_ges.BatistaStudy(sys.modules[__name__], "Batista, Silvestre, Oliveira 2019 (attitude observer on "
-                                                        "SO(3) with Earth velocity estimation), Section 4")
+STUDY = batista_ges.BatistaStudy(
+    sys.modules[__name__],
+    "Batista, Silvestre, Oliveira 2019 (attitude observer on SO(3) with Earth velocity estimation), Section 4",
+)

@@ -7,6 +7,7 @@ persistently exciting), ``constant`` (one constant reference: the rotation about
 body-fixed reference while the body rotates about other axes). Frames: R maps body to inertial; references
 are unit vectors.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple, Sequence
@@ -25,9 +26,13 @@ DT = 0.01
 WINDOW_START = 80.0
 PAPER: dict = {"slow": {}, "aggressive": {}}  # the paper reports no Monte Carlo numbers
 UNITS = {"std_bias": "deg/s", "mean_angle_error_deg": "deg"}
-TABLE_ROWS = [("mean_angle_error_deg", "mean angle error t>=window"), ("final_angle_error_deg", "final angle error"),
-              ("max_angle_error_deg", "max angle error t>=window"), ("final_norm_bias", "final |bias~| (deg/s)"),
-              ("std_bias", "std bias~ t>=window")]
+TABLE_ROWS = [
+    ("mean_angle_error_deg", "mean angle error t>=window"),
+    ("final_angle_error_deg", "final angle error"),
+    ("max_angle_error_deg", "max angle error t>=window"),
+    ("final_norm_bias", "final |bias~| (deg/s)"),
+    ("std_bias", "std bias~ t>=window"),
+]
 PLOT_PANELS = {"norm_bias": "|bias~| (deg/s)"}
 SCENARIO_NAMES = tuple(refs.SCENARIOS)
 
@@ -53,17 +58,20 @@ class Config(NamedTuple):
 
 def scenario(cfg: Config) -> refs.VectorScenario:
     name = cfg.scenario.replace("-", "_")
-    return refs.make_scenario(name, r0_euler_deg=cfg.true_r0_euler_deg, gyro_bias_deg_s=cfg.gyro_bias_deg_s,
-                              gyro_noise_std=cfg.gyro_noise_std * cfg.noise_scale,
-                              meas_noise_std=cfg.meas_noise_std * cfg.noise_scale)
+    return refs.make_scenario(
+        name,
+        r0_euler_deg=cfg.true_r0_euler_deg,
+        gyro_bias_deg_s=cfg.gyro_bias_deg_s,
+        gyro_noise_std=cfg.gyro_noise_std * cfg.noise_scale,
+        meas_noise_std=cfg.meas_noise_std * cfg.noise_scale,
+    )
 
 
 def params(cfg: Config, dtype=None) -> comp.Params:
     scn = scenario(cfg)
     e = np.deg2rad(np.asarray(cfg.r_hat_0_euler_deg, float))
     r0 = np.asarray(so3.euler_zyx_to_matrix(e[0], e[1], e[2]))
-    return comp.default_params(scn.n_body, scn.n_inertial, k=cfg.gain, l=cfg.gain, k_i=cfg.k_i, r_hat_0=r0,
-                               dtype=dtype)
+    return comp.default_params(scn.n_body, scn.n_inertial, k=cfg.gain, l=cfg.gain, k_i=cfg.k_i, r_hat_0=r0, dtype=dtype)
 
 
 def observer(cfg: Config):
@@ -74,9 +82,11 @@ check_params = comp.check_params
 
 
 def notes(cfg: Config):
-    return [f"scenario {cfg.scenario}: {refs.SCENARIOS[cfg.scenario.replace('-', '_')].__doc__.strip().splitlines()[0]}",
-            f"form {cfg.form} (eq. {'10' if cfg.form == 'matrix' else '18'}), gain {cfg.gain} 1/s, k_I {cfg.k_i} 1/s",
-            f"sensor samples: {'held over each step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}"]
+    return [
+        f"scenario {cfg.scenario}: {refs.SCENARIOS[cfg.scenario.replace('-', '_')].__doc__.strip().splitlines()[0]}",
+        f"form {cfg.form} (eq. {'10' if cfg.form == 'matrix' else '18'}), gain {cfg.gain} 1/s, k_I {cfg.k_i} 1/s",
+        f"sensor samples: {'held over each step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
+    ]
 
 
 def errors(truth: refs.VectorTruth, out: comp.Out):

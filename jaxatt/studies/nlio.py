@@ -1,6 +1,6 @@
-"""Section 5 of the sensors2020 paper (interconnected observer with gyro-bias estimation) as studies: Simulation A (Cases 1-4: NLO,
-NLO-a, NLIO-FG, NLIO-TV, NLIO-TV-a) and Simulation B (MEKF and NLIO-TV; the NLCO of the paper's reference [28]
-is not among the papers and is left out: its published numbers are printed, not reproduced).
+"""Section 5 of the sensors2020 paper (interconnected observer with gyro-bias estimation) as studies: Simulation A
+(Cases 1-4: NLO, NLO-a, NLIO-FG, NLIO-TV, NLIO-TV-a) and Simulation B (MEKF and NLIO-TV; the NLCO of the paper's
+reference [28] is not among the papers and is left out: its published numbers are printed, not reproduced).
 
 Set-up (Section 5): omega(t) = [0.1 sin(pi t/12), -0.2 cos(pi t/10), 0.1 sin(pi t/12)] rad/s, 500 s at 100 Hz,
 gyro bias [-0.017, -0.017, 0.017] rad/s, gyro noise 1e-3 rad/s, g^N = [0, 0, 9.81] m/s^2,
@@ -26,6 +26,7 @@ pitch; each was chosen because it matches the paper's own tables (see READINGS a
 Entry point: :func:`reproduce` (``jaxatt reproduce nlio-case1`` ... ``nlio-simb``); :func:`format_report`
 re-prints the tables of a saved JSON.
 """
+
 from __future__ import annotations
 
 import functools
@@ -122,10 +123,23 @@ class Config(NamedTuple):
 CASES: Dict[str, Config] = {
     "case1": Config(case="case1", random_init=True, k1=5.6, k2=3.3),
     "case2": Config(case="case2", random_init=False, mix_prob=0.2, mix="sum", k1=4.7, k2=1.5),
-    "case3": Config(case="case3", random_init=False, burst=(110.0, 190.0, 5.0), k1=5.5, k2=1.8,
-                    windows=WINDOWS + (("burst", 110.0, 190.0),)),
-    "case4": Config(case="case4", random_init=False, mix_prob=0.2, mix="sum", k1=4.7, k2=1.5,
-                    observers=("NLO", "NLO-a", "NLIO-TV", "NLIO-TV-a")),
+    "case3": Config(
+        case="case3",
+        random_init=False,
+        burst=(110.0, 190.0, 5.0),
+        k1=5.5,
+        k2=1.8,
+        windows=WINDOWS + (("burst", 110.0, 190.0),),
+    ),
+    "case4": Config(
+        case="case4",
+        random_init=False,
+        mix_prob=0.2,
+        mix="sum",
+        k1=4.7,
+        k2=1.5,
+        observers=("NLO", "NLO-a", "NLIO-TV", "NLIO-TV-a"),
+    ),
     "simb": Config(case="simb", random_init=True, mix_prob=0.2, mix="sum", kp=1.5, observers=("MEKF", "NLIO-TV")),
 }
 
@@ -135,42 +149,56 @@ _T = ("Transient (0-200 s)", "Steady-State (300-500 s)")
 PAPER = {
     "case1": {
         "table": {"mae": "Table 1", "rmse": "Table 2"},
-        "mae": {"NLO": (0.6196, 0.0985, 0.3662, 0.1149, 0.0748, 0.3495),
-                "NLO-a": (1.0376, 0.1233, 0.2557, 0.0920, 0.0510, 0.2015),
-                "NLIO-FG": (0.6499, 0.1200, 0.2095, 0.1661, 0.0778, 0.1689),
-                "NLIO-TV": (0.6180, 0.0875, 0.2051, 0.0930, 0.0515, 0.1661)},
-        "rmse": {"NLO": (1.0823, 1.0171, 0.1104, 0.0936, 0.4379, 0.0933),
-                 "NLO-a": (1.7734, 1.4817, 0.1332, 0.0635, 0.2524, 0.0772),
-                 "NLIO-FG": (1.0923, 0.9448, 0.1786, 0.0961, 0.2110, 0.1450),
-                 "NLIO-TV": (1.0825, 0.9442, 0.1077, 0.0641, 0.2077, 0.0776)},
+        "mae": {
+            "NLO": (0.6196, 0.0985, 0.3662, 0.1149, 0.0748, 0.3495),
+            "NLO-a": (1.0376, 0.1233, 0.2557, 0.0920, 0.0510, 0.2015),
+            "NLIO-FG": (0.6499, 0.1200, 0.2095, 0.1661, 0.0778, 0.1689),
+            "NLIO-TV": (0.6180, 0.0875, 0.2051, 0.0930, 0.0515, 0.1661),
+        },
+        "rmse": {
+            "NLO": (1.0823, 1.0171, 0.1104, 0.0936, 0.4379, 0.0933),
+            "NLO-a": (1.7734, 1.4817, 0.1332, 0.0635, 0.2524, 0.0772),
+            "NLIO-FG": (1.0923, 0.9448, 0.1786, 0.0961, 0.2110, 0.1450),
+            "NLIO-TV": (1.0825, 0.9442, 0.1077, 0.0641, 0.2077, 0.0776),
+        },
     },
     "case2": {
         "table": {"mae": "Table 3", "rmse": "Table 4"},
-        "mae": {"NLO": (0.1972, 0.1478, 0.7514, 0.1968, 0.1476, 0.7498),
-                "NLO-a": (0.1331, 0.0904, 0.4293, 0.1295, 0.0886, 0.4280),
-                "NLIO-FG": (0.1902, 0.1037, 0.2757, 0.1836, 0.0991, 0.2566),
-                "NLIO-TV": (0.1400, 0.0726, 0.2341, 0.1061, 0.0649, 0.2253)},
-        "rmse": {"NLO": (0.1853, 0.9419, 0.1576, 0.1850, 0.9400, 0.1573),
-                 "NLO-a": (0.1133, 0.5383, 0.1069, 0.1109, 0.5364, 0.1043),
-                 "NLIO-FG": (0.1289, 0.3704, 0.1585, 0.1234, 0.3213, 0.1548),
-                 "NLIO-TV": (0.1079, 0.3461, 0.0990, 0.0810, 0.2820, 0.0870)},
+        "mae": {
+            "NLO": (0.1972, 0.1478, 0.7514, 0.1968, 0.1476, 0.7498),
+            "NLO-a": (0.1331, 0.0904, 0.4293, 0.1295, 0.0886, 0.4280),
+            "NLIO-FG": (0.1902, 0.1037, 0.2757, 0.1836, 0.0991, 0.2566),
+            "NLIO-TV": (0.1400, 0.0726, 0.2341, 0.1061, 0.0649, 0.2253),
+        },
+        "rmse": {
+            "NLO": (0.1853, 0.9419, 0.1576, 0.1850, 0.9400, 0.1573),
+            "NLO-a": (0.1133, 0.5383, 0.1069, 0.1109, 0.5364, 0.1043),
+            "NLIO-FG": (0.1289, 0.3704, 0.1585, 0.1234, 0.3213, 0.1548),
+            "NLIO-TV": (0.1079, 0.3461, 0.0990, 0.0810, 0.2820, 0.0870),
+        },
     },
     "case3": {"table": {}},
     "case4": {
         "table": {"mae": "Table 5"},
-        "mae": {"NLO": (0.1969, 0.1480, 0.7508, 0.1968, 0.1476, 0.7523),
-                "NLO-a": (0.1330, 0.0904, 0.4296, 0.1296, 0.0884, 0.4302),
-                "NLIO-TV": (0.1304, 0.0870, 0.2901, 0.1252, 0.0842, 0.2818),
-                "NLIO-TV-a": (0.1237, 0.0761, 0.2641, 0.1112, 0.0710, 0.2537)},
+        "mae": {
+            "NLO": (0.1969, 0.1480, 0.7508, 0.1968, 0.1476, 0.7523),
+            "NLO-a": (0.1330, 0.0904, 0.4296, 0.1296, 0.0884, 0.4302),
+            "NLIO-TV": (0.1304, 0.0870, 0.2901, 0.1252, 0.0842, 0.2818),
+            "NLIO-TV-a": (0.1237, 0.0761, 0.2641, 0.1112, 0.0710, 0.2537),
+        },
     },
     "simb": {
         "table": {"mae": "Table 6", "rmse": "Table 7"},
-        "mae": {"MEKF": (3.8376, 2.9606, 4.7822, 0.0689, 0.0681, 0.0950),
-                "NLCO": (4.6182, 1.9867, 6.9415, 0.1667, 0.0878, 0.1477),
-                "NLIO-TV": (2.1399, 0.3371, 0.5107, 0.0964, 0.0533, 0.1777)},
-        "rmse": {"MEKF": (6.5455, 10.785, 1.3573, 0.0689, 0.1178, 0.0556),
-                 "NLCO": (7.0986, 16.998, 1.2130, 0.1667, 0.1798, 0.1423),
-                 "NLIO-TV": (3.6250, 3.3297, 0.3448, 0.0964, 0.2216, 0.0813)},
+        "mae": {
+            "MEKF": (3.8376, 2.9606, 4.7822, 0.0689, 0.0681, 0.0950),
+            "NLCO": (4.6182, 1.9867, 6.9415, 0.1667, 0.0878, 0.1477),
+            "NLIO-TV": (2.1399, 0.3371, 0.5107, 0.0964, 0.0533, 0.1777),
+        },
+        "rmse": {
+            "MEKF": (6.5455, 10.785, 1.3573, 0.0689, 0.1178, 0.0556),
+            "NLCO": (7.0986, 16.998, 1.2130, 0.1667, 0.1798, 0.1423),
+            "NLIO-TV": (3.6250, 3.3297, 0.3448, 0.0964, 0.2216, 0.0813),
+        },
     },
 }
 
@@ -217,23 +245,40 @@ def check_config(cfg: Config) -> None:
 # ------------------------------------------------------------------------------------------------------
 def scenario(cfg: Config) -> ahrs.AhrsScenario:
     """Section 5's AHRS platform for ``cfg`` (true R(0) = I)."""
-    return ahrs.AhrsScenario.make(gravity=cfg.gravity, mag_ref_nav=cfg.mag_ref_nav, gyro_bias=cfg.gyro_bias,
-                                  gyro_noise_std=cfg.gyro_noise_std, acc_noise_std=cfg.acc_noise_g * cfg.gravity,
-                                  mag_noise_std=cfg.mag_noise_G, mix_prob=cfg.mix_prob, mix_scale=cfg.mix_scale,
-                                  mix=cfg.mix, burst=cfg.burst, noise_scale=cfg.noise_scale)
+    return ahrs.AhrsScenario.make(
+        gravity=cfg.gravity,
+        mag_ref_nav=cfg.mag_ref_nav,
+        gyro_bias=cfg.gyro_bias,
+        gyro_noise_std=cfg.gyro_noise_std,
+        acc_noise_std=cfg.acc_noise_g * cfg.gravity,
+        mag_noise_std=cfg.mag_noise_G,
+        mix_prob=cfg.mix_prob,
+        mix_scale=cfg.mix_scale,
+        mix=cfg.mix,
+        burst=cfg.burst,
+        noise_scale=cfg.noise_scale,
+    )
 
 
 #: Observer label -> (kind, which Kp).
-_OBSERVERS = {"NLO": ("nlo", "kp"), "NLO-a": ("nlo", "kp_a"), "NLIO-FG": ("nlio-fg", "kp"),
-              "NLIO-FG-a": ("nlio-fg", "kp_a"), "NLIO-TV": ("nlio-tv", "kp"), "NLIO-TV-a": ("nlio-tv", "kp_a"),
-              "MEKF": ("mekf", None)}
+_OBSERVERS = {
+    "NLO": ("nlo", "kp"),
+    "NLO-a": ("nlo", "kp_a"),
+    "NLIO-FG": ("nlio-fg", "kp"),
+    "NLIO-FG-a": ("nlio-fg", "kp_a"),
+    "NLIO-TV": ("nlio-tv", "kp"),
+    "NLIO-TV-a": ("nlio-tv", "kp_a"),
+    "MEKF": ("mekf", None),
+}
 
 
 def noise_variances(cfg: Config) -> Tuple[float, float]:
     """Per-axis variance of the accelerometer and magnetometer noise outside bursts (mixture included)."""
-    return (ahrs.mixed_noise_variance(cfg.acc_noise_g * cfg.gravity, cfg.mix_prob, cfg.mix_scale, cfg.mix)
-            * cfg.noise_scale**2,
-            ahrs.mixed_noise_variance(cfg.mag_noise_G, cfg.mix_prob, cfg.mix_scale, cfg.mix) * cfg.noise_scale**2)
+    return (
+        ahrs.mixed_noise_variance(cfg.acc_noise_g * cfg.gravity, cfg.mix_prob, cfg.mix_scale, cfg.mix)
+        * cfg.noise_scale**2,
+        ahrs.mixed_noise_variance(cfg.mag_noise_G, cfg.mix_prob, cfg.mix_scale, cfg.mix) * cfg.noise_scale**2,
+    )
 
 
 def observer(cfg: Config, name: str):
@@ -254,13 +299,35 @@ def params(cfg: Config, name: str, dtype=None):
     var_acc = max(var_acc * cfg.r_scale, 1e-12 * (cfg.acc_noise_g * cfg.gravity) ** 2)
     var_mag = max(var_mag * cfg.r_scale, 1e-12 * cfg.mag_noise_G**2)
     if kind == "mekf":
-        return mekf_mod.default_params(acc_ref, cfg.mag_ref_nav, gyro_noise_std=max(cfg.gyro_noise_std, 1e-9),
-                                       bias_rw=cfg.mekf_bias_rw, r_acc=var_acc * np.eye(3), r_mag=var_mag * np.eye(3),
-                                       p0_att=cfg.mekf_p0_att, p0_bias=cfg.mekf_p0_bias, dtype=dtype)
-    return nlio_mod.default_params(acc_ref, cfg.mag_ref_nav, kp=getattr(cfg, kp_field), kv=cfg.kv, theta=cfg.theta,
-                                   bias_bound=cfg.bias_bound, bias_max=cfg.bias_max, k1=cfg.k1, k2=cfg.k2,
-                                   gyro_noise_std=cfg.gyro_noise_std, r_acc=var_acc, r_mag=var_mag,
-                                   p0_acc=cfg.p0_acc, p0_mag=cfg.p0_mag, q_scale=cfg.q_scale, dtype=dtype)
+        return mekf_mod.default_params(
+            acc_ref,
+            cfg.mag_ref_nav,
+            gyro_noise_std=max(cfg.gyro_noise_std, 1e-9),
+            bias_rw=cfg.mekf_bias_rw,
+            r_acc=var_acc * np.eye(3),
+            r_mag=var_mag * np.eye(3),
+            p0_att=cfg.mekf_p0_att,
+            p0_bias=cfg.mekf_p0_bias,
+            dtype=dtype,
+        )
+    return nlio_mod.default_params(
+        acc_ref,
+        cfg.mag_ref_nav,
+        kp=getattr(cfg, kp_field),
+        kv=cfg.kv,
+        theta=cfg.theta,
+        bias_bound=cfg.bias_bound,
+        bias_max=cfg.bias_max,
+        k1=cfg.k1,
+        k2=cfg.k2,
+        gyro_noise_std=cfg.gyro_noise_std,
+        r_acc=var_acc,
+        r_mag=var_mag,
+        p0_acc=cfg.p0_acc,
+        p0_mag=cfg.p0_mag,
+        q_scale=cfg.q_scale,
+        dtype=dtype,
+    )
 
 
 def check_params(p) -> None:
@@ -310,8 +377,12 @@ def errors(truth: ahrs.AhrsTruth, out):
 def trace(truth, out, errs, angle_deg):
     """Decimated record for the averaged error curves (float32): |roll|, |pitch|, |yaw| (deg), |b~| (deg/s) and
     |v~| per axis."""
-    rec = {"t": truth.t, "abs_euler": jnp.abs(jnp.stack([errs["roll"], errs["pitch"], errs["yaw"]])),
-           "abs_bias": jnp.abs(errs["bias"]), "angle_deg": angle_deg}
+    rec = {
+        "t": truth.t,
+        "abs_euler": jnp.abs(jnp.stack([errs["roll"], errs["pitch"], errs["yaw"]])),
+        "abs_bias": jnp.abs(errs["bias"]),
+        "angle_deg": angle_deg,
+    }
     for k in ("acc", "mag"):
         if k in errs:
             rec[f"abs_{k}"] = jnp.abs(errs[k])
@@ -332,11 +403,21 @@ def format_table(title: str, measured: Dict[str, list], paper: Dict[str, tuple],
     names = list(measured) + [n for n in paper if n not in measured]
     w = 9
     head = f"{'':22s}" + f"{_T[0]:^{3 * w}s}  " + f"{_T[1]:^{3 * w}s}"
-    cols = f"{'':22s}" + "".join(f"{c:>{w}s}" for c in ("Roll", "Pitch", "Yaw")) + "  " + \
-        "".join(f"{c:>{w}s}" for c in ("Roll", "Pitch", "Yaw"))
+    cols = (
+        f"{'':22s}"
+        + "".join(f"{c:>{w}s}" for c in ("Roll", "Pitch", "Yaw"))
+        + "  "
+        + "".join(f"{c:>{w}s}" for c in ("Roll", "Pitch", "Yaw"))
+    )
     lines = [title + " (deg)", head, cols]
-    fmt = lambda vals: "".join(f"{v:{w}.4f}" if np.isfinite(v) else f"{'-':>{w}s}" for v in vals[:3]) + "  " + \
-        "".join(f"{v:{w}.4f}" if np.isfinite(v) else f"{'-':>{w}s}" for v in vals[3:])  # noqa: E731
+
+    def fmt(vals):
+        return (
+            "".join(f"{v:{w}.4f}" if np.isfinite(v) else f"{'-':>{w}s}" for v in vals[:3])
+            + "  "
+            + "".join(f"{v:{w}.4f}" if np.isfinite(v) else f"{'-':>{w}s}" for v in vals[3:])
+        )  # noqa: E731
+
     for n in names:
         pv = paper.get(n)
         mv = measured.get(n)
@@ -355,10 +436,10 @@ def _curves(traces: dict, max_points: Optional[int] = None) -> dict:
     """Run-averaged error curves from per-run traces (runs, n, ...), optionally decimated to <= max_points."""
     n = np.shape(traces["t"])[1]
     every = 1 if not max_points else max(1, -(-n // max_points))
-    out = {"t": np.asarray(traces["t"][0], float)[every - 1::every].tolist()}
+    out = {"t": np.asarray(traces["t"][0], float)[every - 1 :: every].tolist()}
     for k, v in traces.items():
         if k != "t":
-            out[k] = np.nanmean(np.asarray(v, float), axis=0)[every - 1::every].tolist()
+            out[k] = np.nanmean(np.asarray(v, float), axis=0)[every - 1 :: every].tolist()
     return out
 
 
@@ -381,14 +462,23 @@ def plot_curves(curves: Dict[str, dict], path: str, *, title: str = "", cfg: Opt
                 if key not in c:
                     continue
                 t = np.asarray(c["t"])
-                ax.semilogy(t, np.maximum(np.asarray(c[key])[:, j], 1e-12), styles[s % len(styles)], lw=0.9,
-                            color=f"C{s}", label=name)
+                ax.semilogy(
+                    t,
+                    np.maximum(np.asarray(c[key])[:, j], 1e-12),
+                    styles[s % len(styles)],
+                    lw=0.9,
+                    color=f"C{s}",
+                    label=name,
+                )
             if key in ("abs_acc", "abs_mag") and cfg is not None:
                 # The NLO uses the raw measurements: their mean absolute error is E|eta| per axis.
                 sig = cfg.noise_scale * (cfg.acc_noise_g * cfg.gravity if key == "abs_acc" else cfg.mag_noise_G)
                 p_, k_ = cfg.mix_prob, cfg.mix_scale
-                e_abs = sig * math.sqrt(2 / math.pi) * (
-                    (1 - p_ + p_ * k_) if cfg.mix == "mixture" else math.hypot(1 - p_, p_ * k_))
+                e_abs = (
+                    sig
+                    * math.sqrt(2 / math.pi)
+                    * ((1 - p_ + p_ * k_) if cfg.mix == "mixture" else math.hypot(1 - p_, p_ * k_))
+                )
                 ax.axhline(e_abs, color="k", lw=0.7, ls=":", label="raw sensor (NLO input)")
             if cfg is not None and cfg.burst is not None:
                 ax.axvspan(cfg.burst[0], cfg.burst[1], color="0.9", zorder=0)
@@ -412,13 +502,16 @@ def format_report(payload: dict) -> str:
     paper = PAPER[key]
     done = payload["observers"]
     n_runs = min((e["runs_done"] for e in done.values()), default=0)
-    text = [f"nlio-{key}: {n_runs} runs x {c['duration']:g} s at {1 / c['dt']:g} Hz, seed {c['seed']}, "
-            f"observers in {c['dtype']}, samples {'interpolated' if c['hold'] == 'linear' else 'held'}"
-            + ("" if payload.get("complete") else "  [INCOMPLETE: partial results]")]
+    text = [
+        f"nlio-{key}: {n_runs} runs x {c['duration']:g} s at {1 / c['dt']:g} Hz, seed {c['seed']}, "
+        f"observers in {c['dtype']}, samples {'interpolated' if c['hold'] == 'linear' else 'held'}"
+        + ("" if payload.get("complete") else "  [INCOMPLETE: partial results]")
+    ]
     for metric in ("mae", "rmse"):
         label = paper["table"].get(metric)
         title = f"{label + '. ' if label else ''}{metric.upper()}s of attitude, {key}" + (
-            "" if label else " (no published table)")
+            "" if label else " (no published table)"
+        )
         if metric == "rmse" and label:
             title += " [paper columns read as roll, yaw, pitch]"
         text.append(format_table(title, {n: e[metric] for n, e in done.items()}, paper_values(key, metric), n_runs))
@@ -427,14 +520,21 @@ def format_report(payload: dict) -> str:
         lines = [f"{w} window ({lo:g}-{hi:g} s), MAE / RMSE (deg): roll pitch yaw"]
         for n, e in done.items():
             ex = e["extra_windows"][w]
-            lines.append(f"  {n:10s} MAE " + " ".join(f"{v:.4f}" for v in ex["mae"]) + "   RMSE " +
-                         " ".join(f"{v:.4f}" for v in ex["rmse"]))
+            lines.append(
+                f"  {n:10s} MAE "
+                + " ".join(f"{v:.4f}" for v in ex["mae"])
+                + "   RMSE "
+                + " ".join(f"{v:.4f}" for v in ex["rmse"])
+            )
         text.append("\n".join(lines))
     bias_lines = ["steady-state gyro-bias error MAE (deg/s, x y z); final |b~| mean over runs (deg/s)"]
     for n, e in done.items():
         m = e["metrics"]
-        bias_lines.append(f"  {n:10s} " + " ".join(f"{v:.2e}" for v in m["mae_steady_bias"]["mean"]) +
-                          f"   final {m['final_norm_bias']['mean']:.2e}")
+        bias_lines.append(
+            f"  {n:10s} "
+            + " ".join(f"{v:.2e}" for v in m["mae_steady_bias"]["mean"])
+            + f"   final {m['final_norm_bias']['mean']:.2e}"
+        )
     text.append("\n".join(bias_lines))
     return "\n\n".join(text)
 
@@ -455,8 +555,9 @@ class NLIOStudy(base.Study):
     def __init__(self, name: str):
         self.name = name
         self.case = name[5:]
-        self.paper = ("sensors2020 (interconnected observer with gyro-bias estimation), Section 5, "
-                      + {"simb": "Simulation B"}.get(self.case, f"Simulation A, Case {self.case[4:]}"))
+        self.paper = "sensors2020 (interconnected observer with gyro-bias estimation), Section 5, " + {
+            "simb": "Simulation B"
+        }.get(self.case, f"Simulation A, Case {self.case[4:]}")
 
     def config(self, **overrides):
         dur = float(overrides.get("duration", DURATION))
@@ -489,13 +590,18 @@ class NLIOStudy(base.Study):
         return {"steady": (ss, math.inf), "transient": (ts, te)}
 
     def published(self, cfg):
-        return {"table": PAPER[cfg.case].get("table", {}),
-                **{m: paper_values(cfg.case, m) for m in ("mae", "rmse") if m in PAPER[cfg.case]}}
+        return {
+            "table": PAPER[cfg.case].get("table", {}),
+            **{m: paper_values(cfg.case, m) for m in ("mae", "rmse") if m in PAPER[cfg.case]},
+        }
 
     def comparable(self, cfg):
         ref = CASES[cfg.case]
-        diff = [f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})" for k in Config._fields
-                if k != "observers" and getattr(cfg, k) != getattr(ref, k)]
+        diff = [
+            f"{k} = {getattr(cfg, k)!r} (paper: {getattr(ref, k)!r})"
+            for k in Config._fields
+            if k != "observers" and getattr(cfg, k) != getattr(ref, k)
+        ]
         return "; ".join(diff) if diff else None
 
     def notes(self, cfg):
@@ -514,13 +620,14 @@ class NLIOStudy(base.Study):
     def entry_extra(self, cfg, per_run):
         e = {"mae": table_values(per_run, "mae"), "rmse": table_values(per_run, "rmse")}
         if len(cfg.windows) > 2:
-            e["extra_windows"] = {w: {"mae": table_values(per_run, "mae", (w,)),
-                                      "rmse": table_values(per_run, "rmse", (w,))} for w, _, _ in cfg.windows[2:]}
+            e["extra_windows"] = {
+                w: {"mae": table_values(per_run, "mae", (w,)), "rmse": table_values(per_run, "rmse", (w,))}
+                for w, _, _ in cfg.windows[2:]
+            }
         return e
 
     def add_results(self, cfg, payload, results):
-        payload["curves"] = {n: _curves(r.traces, max_points=1000) for n, r in results.items()
-                             if r.traces is not None}
+        payload["curves"] = {n: _curves(r.traces, max_points=1000) for n, r in results.items() if r.traces is not None}
 
     def format_report(self, payload):
         return format_report(payload)

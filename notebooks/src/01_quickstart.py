@@ -80,14 +80,20 @@ steady = t >= cfg.window_start
 RESULTS["n_samples"], RESULTS["n_estimates"] = int(samples.gyr.shape[0]), int(out.r.shape[0])
 RESULTS["final_angle_error_deg"] = float(angle[-1])
 RESULTS["mean_angle_error_deg"] = float(angle[steady].mean())
-print(f"angle error: {angle[0]:.1f} deg at t = {t[0]:g} s, {angle[-1]:.3f} deg at t = {t[-1]:g} s; "
-      f"mean over t >= {cfg.window_start:g} s: {RESULTS['mean_angle_error_deg']:.3f} deg "
-      f"(paper, single run: {E.PAPER['slow']['single_run_mean_angle_error_deg']} deg)")
+print(
+    f"angle error: {angle[0]:.1f} deg at t = {t[0]:g} s, {angle[-1]:.3f} deg at t = {t[-1]:g} s; "
+    f"mean over t >= {cfg.window_start:g} s: {RESULTS['mean_angle_error_deg']:.3f} deg "
+    f"(paper, single run: {E.PAPER['slow']['single_run_mean_angle_error_deg']} deg)"
+)
 
 # %%
 fig, ax = plt.subplots(figsize=(7, 3.2), constrained_layout=True)
-plot.angle_error_plot({"t": t, "angle_error_deg": angle}, ax=ax, label="run 0 (seed 0)",
-                      title="batista-ges: attitude error from a 180 deg initial error")
+plot.angle_error_plot(
+    {"t": t, "angle_error_deg": angle},
+    ax=ax,
+    label="run 0 (seed 0)",
+    title="batista-ges: attitude error from a 180 deg initial error",
+)
 for ts in np.asarray(params.switch_times):
     ax.axvline(ts, color="0.6", lw=0.6, ls=":")
 ax.axvline(cfg.window_start, color="tab:red", lw=0.8, ls="--", label="steady-state window")
@@ -102,8 +108,11 @@ show(fig, "01_angle_error")
 
 # %%
 euler = plot.euler_error_deg(truth.r, out.r)  # (T, 3): roll, pitch, yaw errors, deg
-fig = plot.euler_error_plot({"t": t, "euler_error_deg": euler}, t_range=(cfg.window_start, cfg.duration),
-                            title="Euler-angle errors over the steady-state window (run 0)")
+fig = plot.euler_error_plot(
+    {"t": t, "euler_error_deg": euler},
+    t_range=(cfg.window_start, cfg.duration),
+    title="Euler-angle errors over the steady-state window (run 0)",
+)
 show(fig, "01_euler_errors")
 
 # %% [markdown]
@@ -125,10 +134,12 @@ state = observer.init(params, jax.tree_util.tree_map(lambda a: a[0], samples))
 o = observer.output(params, state)
 for k in range(4):
     if k > 0:
-        state, o = step(params, state, jax.tree_util.tree_map(lambda a: a[k - 1], samples), cfg.dt)
+        state, o = step(params, state, jax.tree_util.tree_map(lambda a, k=k: a[k - 1], samples), cfg.dt)
     same = np.allclose(np.asarray(o.r), np.asarray(out.r[k]), rtol=0, atol=1e-12)
-    print(f"t = {float(o.t):.2f} s, projected onto SO(3): {bool(o.projected)}, "
-          f"angle error {float(np.rad2deg(so3.angle_error(truth.r[k], o.r))):.2f} deg, equals run row {k}: {same}")
+    print(
+        f"t = {float(o.t):.2f} s, projected onto SO(3): {bool(o.projected)}, "
+        f"angle error {float(np.rad2deg(so3.angle_error(truth.r[k], o.r))):.2f} deg, equals run row {k}: {same}"
+    )
     assert same
 
 # %% [markdown]
@@ -141,32 +152,58 @@ for k in range(4):
 
 # %%
 RUNS = 8 if QUICK else 100
-mc = montecarlo.monte_carlo(scenario, observer, params, runs=RUNS, duration=cfg.duration, dt=cfg.dt, seed=0,
-                            errors_fn=E.errors, window_start=cfg.window_start, chunk=min(RUNS, 50),
-                            trace_every=100, trace_fn=plot.euler_trace, validate=E.check_params)
+mc = montecarlo.monte_carlo(
+    scenario,
+    observer,
+    params,
+    runs=RUNS,
+    duration=cfg.duration,
+    dt=cfg.dt,
+    seed=0,
+    errors_fn=E.errors,
+    window_start=cfg.window_start,
+    chunk=min(RUNS, 50),
+    trace_every=100,
+    trace_fn=plot.euler_trace,
+    validate=E.check_params,
+)
 mean_angle = mc.per_run["mean_angle_error_deg"]
 RESULTS["mc_runs"] = int(len(mean_angle))
 RESULTS["mc_mean_angle_error_deg"] = float(np.mean(mean_angle))
 RESULTS["mc_run0_final_angle_error_deg"] = float(mc.per_run["final_angle_error_deg"][0])
 RESULTS["mc_trace_start_s"] = float(mc.traces["t"][0, 0])  # traces start at estimate 0, t = 0
 RESULTS["mc_trace_start_angle_error_deg"] = float(mc.traces["angle_error_deg"][0, 0])  # the 180 deg start
-print(f"{len(mean_angle)} runs in {mc.wall_s:.1f} s (compile included); traces: "
-      f"{ {k: v.shape for k, v in mc.traces.items()} }")
-print(f"mean angle error over t >= {cfg.window_start:g} s: {np.mean(mean_angle):.3f} deg "
-      f"(std over runs {np.std(mean_angle):.3f}; paper, 1000 runs: {E.PAPER['slow']['mean_angle_error_deg']} deg)")
-print(f"run 0 final error: Monte Carlo {RESULTS['mc_run0_final_angle_error_deg']:.6f} deg, "
-      f"log + run above {RESULTS['final_angle_error_deg']:.6f} deg")
+print(
+    f"{len(mean_angle)} runs in {mc.wall_s:.1f} s (compile included); traces: "
+    f"{ {k: v.shape for k, v in mc.traces.items()} }"
+)
+print(
+    f"mean angle error over t >= {cfg.window_start:g} s: {np.mean(mean_angle):.3f} deg "
+    f"(std over runs {np.std(mean_angle):.3f}; paper, 1000 runs: {E.PAPER['slow']['mean_angle_error_deg']} deg)"
+)
+print(
+    f"run 0 final error: Monte Carlo {RESULTS['mc_run0_final_angle_error_deg']:.6f} deg, "
+    f"log + run above {RESULTS['final_angle_error_deg']:.6f} deg"
+)
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(7, 5.6), constrained_layout=True)
 plot.angle_error_plot(mc_traces=mc.traces, ax=axes[0], title="Monte Carlo: angle error, whole run")
-plot.angle_error_plot(mc_traces=mc.traces, ax=axes[1], logy=False, t_range=(cfg.window_start, cfg.duration),
-                      title=f"steady state (t >= {cfg.window_start:g} s)")
+plot.angle_error_plot(
+    mc_traces=mc.traces,
+    ax=axes[1],
+    logy=False,
+    t_range=(cfg.window_start, cfg.duration),
+    title=f"steady state (t >= {cfg.window_start:g} s)",
+)
 show(fig, "01_mc_envelope")
 
 # %%
-fig = plot.euler_error_plot(mc_traces=mc.traces, t_range=(cfg.window_start, cfg.duration),
-                            title="Monte Carlo Euler-angle errors: mean and 5-95 % band")
+fig = plot.euler_error_plot(
+    mc_traces=mc.traces,
+    t_range=(cfg.window_start, cfg.duration),
+    title="Monte Carlo Euler-angle errors: mean and 5-95 % band",
+)
 show(fig, "01_mc_euler_envelope")
 
 # %% [markdown]

@@ -53,11 +53,25 @@ def run_study(name, runs=RUNS, seed=0):
     """The Monte Carlo of a study's observer at the paper's settings (dt from the mode)."""
     st = studies.get(name)
     s = st.setup(dt=DT)  # scenario, observer, params (paper gains), errors_fn, duration, dt, hold, window_start...
-    res = montecarlo.monte_carlo(s.scenario, s.observer, s.params, runs=runs, duration=s.duration, dt=s.dt,
-                                 seed=seed, errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold,
-                                 chunk=min(runs, 25), trace_every=TRACE_EVERY, validate=s.check_params)
-    print(f"{st.name}: {len(res.run_indices)} runs x {s.duration:g} s at {1 / s.dt:g} Hz in {res.wall_s:.1f} s "
-          "(compile included)")
+    res = montecarlo.monte_carlo(
+        s.scenario,
+        s.observer,
+        s.params,
+        runs=runs,
+        duration=s.duration,
+        dt=s.dt,
+        seed=seed,
+        errors_fn=s.errors_fn,
+        window_start=s.window_start,
+        hold=s.hold,
+        chunk=min(runs, 25),
+        trace_every=TRACE_EVERY,
+        validate=s.check_params,
+    )
+    print(
+        f"{st.name}: {len(res.run_indices)} runs x {s.duration:g} s at {1 / s.dt:g} Hz in {res.wall_s:.1f} s "
+        "(compile included)"
+    )
     return st, s, res
 
 
@@ -81,9 +95,13 @@ def table(st, s, res):
 # %%
 st_ges, s_ges, mc_ges = run_study("batista-ges")
 trace0 = {k: v[0] for k, v in mc_ges.traces.items()}  # run 0, the single run of the figures
-fig = plot.convergence_plot(trace0, panels=batista_ges.PLOT_PANELS, mc_traces=mc_ges.traces,
-                            steady_from_s=s_ges.window_start,
-                            title="batista-ges: initial convergence (Figs. 2-4) and angle error (Fig. 5)")
+fig = plot.convergence_plot(
+    trace0,
+    panels=batista_ges.PLOT_PANELS,
+    mc_traces=mc_ges.traces,
+    steady_from_s=s_ges.window_start,
+    title="batista-ges: initial convergence (Figs. 2-4) and angle error (Fig. 5)",
+)
 show(fig, "02_ges_convergence")
 
 # %%
@@ -97,9 +115,13 @@ RESULTS["ges_ratios"] = {k: ours_ges[k] / v for k, v in paper_ges.items() if k i
 # %%
 st_so3, s_so3, mc_so3 = run_study("batista-so3")
 trace0 = {k: v[0] for k, v in mc_so3.traces.items()}
-fig = plot.convergence_plot(trace0, panels=batista_so3.PLOT_PANELS, mc_traces=mc_so3.traces,
-                            steady_from_s=s_so3.window_start,
-                            title="batista-so3: initial convergence (Figs. 2-3) and angle error (Fig. 4)")
+fig = plot.convergence_plot(
+    trace0,
+    panels=batista_so3.PLOT_PANELS,
+    mc_traces=mc_so3.traces,
+    steady_from_s=s_so3.window_start,
+    title="batista-so3: initial convergence (Figs. 2-3) and angle error (Fig. 4)",
+)
 show(fig, "02_so3_convergence")
 
 # %%
@@ -120,10 +142,17 @@ RESULTS["so3_ratios"] = {k: ours_so3[k] / v for k, v in paper_so3.items() if k i
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(7.5, 5.0), constrained_layout=True)
 skip = ("single_run_mean_angle_error_deg",)  # a single-run number, not a Monte Carlo mean
-for ax, st, ours, paper, mc in ((axes[0], st_ges, ours_ges, paper_ges, mc_ges),
-                                (axes[1], st_so3, ours_so3, paper_so3, mc_so3)):
-    plot.comparison_plot(ours, {k: v for k, v in paper.items() if k not in skip}, labels=dict(st.rows),
-                         ax=ax, title=f"{st.name}, {len(mc.run_indices)} runs at {1 / DT:g} Hz")
+for ax, st, ours, paper, mc in (
+    (axes[0], st_ges, ours_ges, paper_ges, mc_ges),
+    (axes[1], st_so3, ours_so3, paper_so3, mc_so3),
+):
+    plot.comparison_plot(
+        ours,
+        {k: v for k, v in paper.items() if k not in skip},
+        labels=dict(st.rows),
+        ax=ax,
+        title=f"{st.name}, {len(mc.run_indices)} runs at {1 / DT:g} Hz",
+    )
 show(fig, "02_table2_comparison")
 
 # %% [markdown]
@@ -136,6 +165,11 @@ show(fig, "02_table2_comparison")
 # %%
 fig, ax = plt.subplots(figsize=(7, 3.4), constrained_layout=True)
 plot.angle_error_plot(mc_traces=mc_ges.traces, ax=ax, color="tab:blue", mc_label="batista-ges median, bands")
-plot.angle_error_plot(mc_traces=mc_so3.traces, ax=ax, color="tab:orange", mc_label="batista-so3 median, bands",
-                      title=f"angle error, {RUNS} runs each (bands: 5-95 % and 25-75 %)")
+plot.angle_error_plot(
+    mc_traces=mc_so3.traces,
+    ax=ax,
+    color="tab:orange",
+    mc_label="batista-so3 median, bands",
+    title=f"angle error, {RUNS} runs each (bands: 5-95 % and 25-75 %)",
+)
 show(fig, "02_ges_vs_so3")

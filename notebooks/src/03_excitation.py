@@ -47,9 +47,12 @@ DURATION = 60.0 if QUICK else 120.0  # s
 DT = 0.01  # s
 WINDOW = 5.0  # s, the window T of Definition 4.1
 THRESHOLD = 0.05  # lambda2 / T below this: "not exciting" (the CLI's default)
-TITLES = {"rotating": "rotating: one inertial direction on a cone", "constant": "constant: one inertial direction",
-          "two_constant": "two_constant: two inertial directions",
-          "body_fixed": "body_fixed: one body-fixed direction"}
+TITLES = {
+    "rotating": "rotating: one inertial direction on a cone",
+    "constant": "constant: one inertial direction",
+    "two_constant": "two_constant: two inertial directions",
+    "body_fixed": "body_fixed: one body-fixed direction",
+}
 
 
 def show(fig, name):
@@ -67,11 +70,16 @@ def show(fig, name):
 
 # %%
 scenarios = {n: references.make_scenario(n) for n in NAMES}
-exc = {n: analysis.excitation_of_scenario(s, duration=DURATION, dt=DT, window=WINDOW, stride=10)
-       for n, s in scenarios.items()}
+exc = {
+    n: analysis.excitation_of_scenario(s, duration=DURATION, dt=DT, window=WINDOW, stride=10)
+    for n, s in scenarios.items()
+}
 
-top = 1.1 * max(float(np.max(getattr(e, f) / WINDOW)) for e in exc.values()
-                for f in ("lambda2", "lambda_min_projector", "condition"))
+top = 1.1 * max(
+    float(np.max(getattr(e, f) / WINDOW))
+    for e in exc.values()
+    for f in ("lambda2", "lambda_min_projector", "condition")
+)
 fig, axes = plt.subplots(2, 2, figsize=(9, 6.0), sharex=True, constrained_layout=True)
 for ax, n in zip(axes.ravel(), NAMES):
     analysis.plot_excitation(exc[n], ax=ax, threshold=THRESHOLD, title=TITLES[n])
@@ -81,8 +89,13 @@ for ax, n in zip(axes.ravel(), NAMES):
 for ax in axes[0]:
     ax.set_xlabel("")
 handles, labels = axes[0, 0].get_legend_handles_labels()
-fig.legend(handles + [axes[0, 0].lines[-1]], labels + [f"threshold {THRESHOLD:g}"], loc="outside lower center",
-           ncol=4, fontsize=8)
+fig.legend(
+    handles + [axes[0, 0].lines[-1]],
+    labels + [f"threshold {THRESHOLD:g}"],
+    loc="outside lower center",
+    ncol=4,
+    fontsize=8,
+)
 fig.suptitle(f"persistent-excitation measures, windows of T = {WINDOW:g} s (per second of window)")
 show(fig, "03_excitation_measures")
 
@@ -105,12 +118,23 @@ study = studies.get("complementary")
 traces, summaries = {}, {}
 for n in NAMES:
     s = study.setup(scenario=n, duration=DURATION, gyro_noise_std=1e-3, meas_noise_std=1e-2)  # window: last third
-    summ, tr, _ = montecarlo.simulate(s.scenario, s.observer, s.params, duration=s.duration, dt=s.dt,
-                                      errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold,
-                                      trace_every=10, trace_fn=plot.euler_trace)
+    summ, tr, _ = montecarlo.simulate(
+        s.scenario,
+        s.observer,
+        s.params,
+        duration=s.duration,
+        dt=s.dt,
+        errors_fn=s.errors_fn,
+        window_start=s.window_start,
+        hold=s.hold,
+        trace_every=10,
+        trace_fn=plot.euler_trace,
+    )
     traces[n], summaries[n] = tr, summ
-    print(f"{n:13s} final angle error {summ['final_angle_error_deg']:8.3f} deg, mean over the last third "
-          f"{summ['mean_angle_error_deg']:8.3f} deg")
+    print(
+        f"{n:13s} final angle error {summ['final_angle_error_deg']:8.3f} deg, mean over the last third "
+        f"{summ['mean_angle_error_deg']:8.3f} deg"
+    )
 RESULTS["final_angle_error_deg"] = {n: s["final_angle_error_deg"] for n, s in summaries.items()}
 
 fig, ax = plt.subplots(figsize=(7, 3.6), constrained_layout=True)
@@ -128,16 +152,24 @@ show(fig, "03_angle_error_by_scenario")
 fig = plot.euler_error_plot(traces["constant"], title="constant reference: the yaw error is not observable")
 for i, ax in enumerate(fig.axes):
     ax.lines[0].set_label("constant")
-    ax.plot(traces["two_constant"]["t"], traces["two_constant"]["euler_error_deg"][:, i], color="0.35", ls="--",
-            lw=0.9, label="two_constant")
+    ax.plot(
+        traces["two_constant"]["t"],
+        traces["two_constant"]["euler_error_deg"][:, i],
+        color="0.35",
+        ls="--",
+        lw=0.9,
+        label="two_constant",
+    )
     ax.legend(fontsize=7, loc="upper right")
 show(fig, "03_euler_constant_vs_two")
 
 RESULTS["constant_final_yaw_error_deg"] = float(traces["constant"]["euler_error_deg"][-1, 2])
 RESULTS["constant_final_tilt_error_deg"] = float(np.max(np.abs(traces["constant"]["euler_error_deg"][-1, :2])))
-print(f"constant reference at t = {DURATION:g} s: roll/pitch error <= "
-      f"{RESULTS['constant_final_tilt_error_deg']:.3f} deg, "
-      f"yaw error {RESULTS['constant_final_yaw_error_deg']:.1f} deg")
+print(
+    f"constant reference at t = {DURATION:g} s: roll/pitch error <= "
+    f"{RESULTS['constant_final_tilt_error_deg']:.3f} deg, "
+    f"yaw error {RESULTS['constant_final_yaw_error_deg']:.1f} deg"
+)
 
 # %% [markdown]
 # ## From the shell

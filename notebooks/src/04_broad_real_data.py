@@ -61,8 +61,10 @@ if HAVE_DATA:
     print(f"BROAD trials in {DATA_DIR.resolve()}: {len(broad.list_trials(DATA_DIR))}")
     print(broad.ATTRIBUTION)
 else:
-    print(f"BROAD data not found in {DATA_DIR.resolve()} (or h5py missing): set JAXATT_BROAD_DIR to the folder "
-          "of the .hdf5 trials (https://github.com/dlaidig/broad). The data cells below are skipped.")
+    print(
+        f"BROAD data not found in {DATA_DIR.resolve()} (or h5py missing): set JAXATT_BROAD_DIR to the folder "
+        "of the .hdf5 trials (https://github.com/dlaidig/broad). The data cells below are skipped."
+    )
 
 # %% [markdown]
 # ## Load a few trials
@@ -78,8 +80,10 @@ if HAVE_DATA:
     except ValueError:  # a data folder without these trials: take the first three
         trials = broad.load(DATA_DIR, trials=broad.list_trials(DATA_DIR)[:3])
     for tr in trials:
-        print(f"{tr.name:48s} {len(tr.samples.t):6d} samples ({len(tr.samples.t) / tr.rate_hz:5.1f} s), "
-              f"{tr.movement.sum():6d} scored, group {tr.group}")
+        print(
+            f"{tr.name:48s} {len(tr.samples.t):6d} samples ({len(tr.samples.t) / tr.rate_hz:5.1f} s), "
+            f"{tr.movement.sum():6d} scored, group {tr.group}"
+        )
 
 # %% [markdown]
 # ## The BROAD metric per trial, against the published numbers
@@ -108,17 +112,25 @@ if HAVE_DATA:
     for tr in trials:
         m = score.trials[tr.name]._asdict()
         pub = published.get(tr.name, {}).get("tagp_parameters", {}).get("total_rmse_deg")
-        rows[tr.name] = dict(m, published_total_rmse_deg=pub,
-                             registered_total_rmse_deg=score_reg.trials[tr.name].total_rmse_deg)
-        print(f"{tr.name:48s} {m['total_rmse_deg']:7.3f} {m['heading_rmse_deg']:8.3f} "
-              f"{m['inclination_rmse_deg']:7.3f} {'-' if pub is None else f'{pub:.3f}':>10s} "
-              f"{rows[tr.name]['registered_total_rmse_deg']:11.3f}")
+        rows[tr.name] = dict(
+            m, published_total_rmse_deg=pub, registered_total_rmse_deg=score_reg.trials[tr.name].total_rmse_deg
+        )
+        print(
+            f"{tr.name:48s} {m['total_rmse_deg']:7.3f} {m['heading_rmse_deg']:8.3f} "
+            f"{m['inclination_rmse_deg']:7.3f} {'-' if pub is None else f'{pub:.3f}':>10s} "
+            f"{rows[tr.name]['registered_total_rmse_deg']:11.3f}"
+        )
     for g, gs in score.groups.items():
-        print(f"mean over the {gs.n_trials} {g} trials: total {gs.total_rmse_deg:.3f} deg "
-              f"(registered mahony {score_reg.groups[g].total_rmse_deg:.3f} deg)")
+        print(
+            f"mean over the {gs.n_trials} {g} trials: total {gs.total_rmse_deg:.3f} deg "
+            f"(registered mahony {score_reg.groups[g].total_rmse_deg:.3f} deg)"
+        )
     RESULTS["per_trial"] = rows
-    diffs = [abs(r["total_rmse_deg"] - r["published_total_rmse_deg"]) for r in rows.values()
-             if r["published_total_rmse_deg"] is not None]
+    diffs = [
+        abs(r["total_rmse_deg"] - r["published_total_rmse_deg"])
+        for r in rows.values()
+        if r["published_total_rmse_deg"] is not None
+    ]
     RESULTS["max_abs_diff_to_published_deg"] = float(max(diffs)) if diffs else None
     print(f"largest difference to the published RMSE: {RESULTS['max_abs_diff_to_published_deg']:.2e} deg")
 
@@ -126,9 +138,13 @@ if HAVE_DATA:
 if HAVE_DATA:
     fig, ax = plt.subplots(figsize=(7.5, 0.42 * len(rows) + 1.9), constrained_layout=True)
     y = np.arange(len(rows))[::-1]
-    for j, (key, label, color) in enumerate((("total_rmse_deg", "total", "tab:blue"),
-                                             ("heading_rmse_deg", "heading", "tab:orange"),
-                                             ("inclination_rmse_deg", "inclination", "tab:green"))):
+    for j, (key, label, color) in enumerate(
+        (
+            ("total_rmse_deg", "total", "tab:blue"),
+            ("heading_rmse_deg", "heading", "tab:orange"),
+            ("inclination_rmse_deg", "inclination", "tab:green"),
+        )
+    ):
         ax.barh(y + (1 - j) * 0.26, [r[key] for r in rows.values()], height=0.25, color=color, label=label)
     pub = [r["published_total_rmse_deg"] for r in rows.values()]
     ax.plot([np.nan if p is None else p for p in pub], y + 0.26, "k|", ms=12, mew=2, label="published total")
@@ -152,19 +168,21 @@ if HAVE_DATA:
 # %%
 if HAVE_DATA:
     tr = trials[0]
-    est = jaxatt.filter(observer, tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz,
-                        params=params)
+    est = jaxatt.filter(observer, tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1.0 / tr.rate_hz, params=params)
     print(f"{est.observer}: quat {est.quat.shape} ({est.frame}), outputs {sorted(est.outputs)}")
     total, heading, incl = (np.rad2deg(e) for e in broad.error_angles(est.quat, tr.quat_true))
     t = est.t
     # the metric of these estimates is broad_score's for this trial (estimate k against opt_quat[k])
     m = broad.broad_errors(est.quat, tr.quat_true, tr.movement)
     RESULTS["filter_vs_score_diff_deg"] = max(abs(m[k] - rows[tr.name][k]) for k in broad.METRICS)
-    print(f"BROAD metric of jaxatt.filter's estimates: total {m['total_rmse_deg']:.6f} deg (broad_score: "
-          f"{rows[tr.name]['total_rmse_deg']:.6f} deg)")
+    print(
+        f"BROAD metric of jaxatt.filter's estimates: total {m['total_rmse_deg']:.6f} deg (broad_score: "
+        f"{rows[tr.name]['total_rmse_deg']:.6f} deg)"
+    )
     fig, ax = plt.subplots(figsize=(7.5, 3.4), constrained_layout=True)
-    ax.fill_between(t, 0, 1, where=tr.movement, transform=ax.get_xaxis_transform(), color="0.9", lw=0,
-                    label="movement (scored)")
+    ax.fill_between(
+        t, 0, 1, where=tr.movement, transform=ax.get_xaxis_transform(), color="0.9", lw=0, label="movement (scored)"
+    )
     ax.plot(t, total, lw=0.7, label="total")
     ax.plot(t, heading, lw=0.7, label="heading")
     ax.plot(t, incl, lw=0.7, label="inclination")
@@ -194,8 +212,13 @@ if HAVE_DATA:
     ki = float(params.ki)
     padded = broad.pad_trials(trials)  # (B, T_max, ...), padding repeats the last sample, never scored
     item = broad.batch_item(padded, jnp.float64)  # samples, 1 / rate per trial, truth and scored-sample mask
-    scan = engine.batch_fn(observer, engine.Recorded(padded.samples.t.shape[1] - 1), broad.METRIC_REDUCER,
-                           hold="next", obs_dtype=jnp.float64)
+    scan = engine.batch_fn(
+        observer,
+        engine.Recorded(padded.samples.t.shape[1] - 1),
+        broad.METRIC_REDUCER,
+        hold="next",
+        obs_dtype=jnp.float64,
+    )
 
     @jax.jit
     def grid(kps, item):

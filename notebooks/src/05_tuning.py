@@ -24,7 +24,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -85,26 +84,46 @@ print("gains declared for tuning:", [f"{g.field} ({g.unit}, {g.constraint})" for
 # %%
 gains_path = FIG_DIR / "05_tuned_gains.json"
 FIG_DIR.mkdir(parents=True, exist_ok=True)
-fitted = jaxatt.fit(data=STUDY, steps=STEPS, train_runs=TRAIN_RUNS, val_runs=VAL_RUNS, batch=BATCH_RUNS,
-                    val_every=2, lr=LR, config={"duration": DURATION, "dt": DT}, tune=("gain_z",),
-                    transforms={"gain_z": P.ScaledSPD(np.ones((9, 1)))}, out=str(gains_path), overwrite=True,
-                    callback=fitter.print_progress)
+fitted = jaxatt.fit(
+    data=STUDY,
+    steps=STEPS,
+    train_runs=TRAIN_RUNS,
+    val_runs=VAL_RUNS,
+    batch=BATCH_RUNS,
+    val_every=2,
+    lr=LR,
+    config={"duration": DURATION, "dt": DT},
+    tune=("gain_z",),
+    transforms={"gain_z": P.ScaledSPD(np.ones((9, 1)))},
+    out=str(gains_path),
+    overwrite=True,
+    callback=fitter.print_progress,
+)
 tuned = fitted.params
 scale = float(np.linalg.norm(np.asarray(tuned.gain_z)) / np.linalg.norm(np.asarray(s.params.gain_z)))
-RESULTS.update(status=fitted.status, start_val_loss=fitted.start_loss, best_val_loss=fitted.best_loss,
-               gain_scale=scale)
-print(f"{fitted.status}: held-out loss {fitted.start_loss:.4g} -> {fitted.best_loss:.4g} deg^2 (step "
-      f"{fitted.best_step}); gain x {scale:.3g}, rates "
-      f"{np.unique(np.round(np.linalg.eigvalsh(np.asarray(tuned.gain_z)), 5))} 1/s")
+RESULTS.update(status=fitted.status, start_val_loss=fitted.start_loss, best_val_loss=fitted.best_loss, gain_scale=scale)
+print(
+    f"{fitted.status}: held-out loss {fitted.start_loss:.4g} -> {fitted.best_loss:.4g} deg^2 (step "
+    f"{fitted.best_step}); gain x {scale:.3g}, rates "
+    f"{np.unique(np.round(np.linalg.eigvalsh(np.asarray(tuned.gain_z)), 5))} 1/s"
+)
 
 # %%
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
-plot.tuning_curves(fitted.history, ax=axes[0], metric="loss", ylabel="loss: mean angle^2, t >= 200 s (deg^2)",
-                   title="loss")
-plot.tuning_curves(fitted.history, ax=axes[1], metric="metric", ylabel="mean angle error, t >= 200 s (deg)",
-                   title="angle error over the loss window")
-fig.suptitle(f"tuning a factor on {STUDY}'s gain_z for a {DURATION:g} s horizon "
-             f"({TRAIN_RUNS} training, {VAL_RUNS} held-out runs)")
+plot.tuning_curves(
+    fitted.history, ax=axes[0], metric="loss", ylabel="loss: mean angle^2, t >= 200 s (deg^2)", title="loss"
+)
+plot.tuning_curves(
+    fitted.history,
+    ax=axes[1],
+    metric="metric",
+    ylabel="mean angle error, t >= 200 s (deg)",
+    title="angle error over the loss window",
+)
+fig.suptitle(
+    f"tuning a factor on {STUDY}'s gain_z for a {DURATION:g} s horizon "
+    f"({TRAIN_RUNS} training, {VAL_RUNS} held-out runs)"
+)
 show(fig, "05_tuning_curves")
 
 # %% [markdown]
@@ -122,11 +141,14 @@ loss_fn = losses.make_loss_fn(s.observer, duration=s.duration, dt=s.dt, spec=spe
 val_keys = montecarlo.run_keys(0, range(TRAIN_RUNS, TRAIN_RUNS + VAL_RUNS))
 val_paper, _ = loss_fn(s.scenario, s.params, val_keys)
 val_tuned, aux = loss_fn(s.scenario, tuned, val_keys)
-print(f"held-out loss, paper gain: {float(val_paper):.6g} deg^2 (fit: {fitted.start_loss:.6g}); tuned gain: "
-      f"{float(val_tuned):.6g} deg^2 (fit: {fitted.best_loss:.6g}); mean angle error over the window per run: "
-      f"{np.array2string(np.asarray(aux['window_angle_deg'][0]), precision=2)} deg")
-RESULTS["loss_fn_val_rel_diff"] = max(abs(float(val_paper) / fitted.start_loss - 1),
-                                      abs(float(val_tuned) / fitted.best_loss - 1))
+print(
+    f"held-out loss, paper gain: {float(val_paper):.6g} deg^2 (fit: {fitted.start_loss:.6g}); tuned gain: "
+    f"{float(val_tuned):.6g} deg^2 (fit: {fitted.best_loss:.6g}); mean angle error over the window per run: "
+    f"{np.array2string(np.asarray(aux['window_angle_deg'][0]), precision=2)} deg"
+)
+RESULTS["loss_fn_val_rel_diff"] = max(
+    abs(float(val_paper) / fitted.start_loss - 1), abs(float(val_tuned) / fitted.best_loss - 1)
+)
 
 # %% [markdown]
 # ## Check on seeds never used for tuning
@@ -137,26 +159,46 @@ RESULTS["loss_fn_val_rel_diff"] = max(abs(float(val_paper) / fitted.start_loss -
 # seed=..., gains_source=str(gains_path))` does this comparison in one call and writes a JSON, without the traces
 # drawn here.)
 
+
 # %%
 def evaluate(params):
-    return montecarlo.monte_carlo(s.scenario, s.observer, params, runs=EVAL_RUNS, duration=s.duration, dt=s.dt,
-                                  seed=EVAL_SEED, errors_fn=s.errors_fn, window_start=s.window_start, hold=s.hold,
-                                  chunk=min(EVAL_RUNS, 32), trace_every=50, validate=s.check_params)
+    return montecarlo.monte_carlo(
+        s.scenario,
+        s.observer,
+        params,
+        runs=EVAL_RUNS,
+        duration=s.duration,
+        dt=s.dt,
+        seed=EVAL_SEED,
+        errors_fn=s.errors_fn,
+        window_start=s.window_start,
+        hold=s.hold,
+        chunk=min(EVAL_RUNS, 32),
+        trace_every=50,
+        validate=s.check_params,
+    )
 
 
 mc_paper = evaluate(s.params)
 mc_tuned = evaluate(tuned)
 for label, mc in (("paper gain", mc_paper), ("tuned gain", mc_tuned)):
     m = mc.per_run["mean_angle_error_deg"]
-    print(f"{label}: mean angle error over t >= {s.window_start:g} s = {np.mean(m):.3f} deg "
-          f"(per run: {np.array2string(m, precision=2)}), {mc.wall_s:.1f} s")
+    print(
+        f"{label}: mean angle error over t >= {s.window_start:g} s = {np.mean(m):.3f} deg "
+        f"(per run: {np.array2string(m, precision=2)}), {mc.wall_s:.1f} s"
+    )
 RESULTS["eval_paper_mean_angle_deg"] = float(np.mean(mc_paper.per_run["mean_angle_error_deg"]))
 RESULTS["eval_tuned_mean_angle_deg"] = float(np.mean(mc_tuned.per_run["mean_angle_error_deg"]))
 
 fig, ax = plt.subplots(figsize=(7, 3.6), constrained_layout=True)
 plot.angle_error_plot(mc_traces=mc_paper.traces, ax=ax, color="tab:gray", mc_label="paper gain (median, bands)")
-plot.angle_error_plot(mc_traces=mc_tuned.traces, ax=ax, color="tab:blue", mc_label=f"tuned gain x {scale:.3g}",
-                      title=f"held-out seeds ({EVAL_RUNS} runs): angle error, paper vs tuned gain")
+plot.angle_error_plot(
+    mc_traces=mc_tuned.traces,
+    ax=ax,
+    color="tab:blue",
+    mc_label=f"tuned gain x {scale:.3g}",
+    title=f"held-out seeds ({EVAL_RUNS} runs): angle error, paper vs tuned gain",
+)
 ax.axvline(s.window_start, color="tab:red", ls="--", lw=0.8, label=f"loss window starts ({s.window_start:g} s)")
 ax.legend(fontsize=8)
 show(fig, "05_tuned_vs_paper")
@@ -177,11 +219,14 @@ show(fig, "05_tuned_vs_paper")
 # %%
 saved = gainsfile.read(gains_path)
 loaded = gainsfile.read_params(gains_path, s.entry, base=s.params)
-RESULTS["gains_roundtrip"] = bool(np.allclose(np.asarray(loaded.gain_z), np.asarray(tuned.gain_z), rtol=1e-12,
-                                              atol=0.0))
-print(f"{gains_path}: observer {saved['observer']}, study {saved['study']}, status {saved['status']}, gains "
-      f"{sorted(saved['gains'])} (gain_z in {saved['gains']['gain_z']['unit']}), round trip exact: "
-      f"{RESULTS['gains_roundtrip']}")
+RESULTS["gains_roundtrip"] = bool(
+    np.allclose(np.asarray(loaded.gain_z), np.asarray(tuned.gain_z), rtol=1e-12, atol=0.0)
+)
+print(
+    f"{gains_path}: observer {saved['observer']}, study {saved['study']}, status {saved['status']}, gains "
+    f"{sorted(saved['gains'])} (gain_z in {saved['gains']['gain_z']['unit']}), round trip exact: "
+    f"{RESULTS['gains_roundtrip']}"
+)
 # gains of your own (e.g. from another optimiser) are written the same way:
 #   gainsfile.write(path, observer=s.entry, params=my_params, gains=GAINS, study=STUDY)
 
@@ -197,13 +242,27 @@ print(f"{gains_path}: observer {saved['observer']}, study {saved['study']}, stat
 if QUICK:
     print("skipped in quick mode (JAXATT_NOTEBOOK_QUICK=1)")
 else:
-    full = jaxatt.fit(data=STUDY, steps=30, train_runs=TRAIN_RUNS, val_runs=VAL_RUNS, batch=BATCH_RUNS, val_every=2,
-                      lr=0.3, config={"duration": DURATION, "dt": DT}, tune=("gain_z",), start=lambda p: tuned,
-                      out=str(FIG_DIR / "05_tuned_gains_full.json"), overwrite=True, callback=fitter.print_progress)
+    full = jaxatt.fit(
+        data=STUDY,
+        steps=30,
+        train_runs=TRAIN_RUNS,
+        val_runs=VAL_RUNS,
+        batch=BATCH_RUNS,
+        val_every=2,
+        lr=0.3,
+        config={"duration": DURATION, "dt": DT},
+        tune=("gain_z",),
+        start=lambda p: tuned,
+        out=str(FIG_DIR / "05_tuned_gains_full.json"),
+        overwrite=True,
+        callback=fitter.print_progress,
+    )
     mc_full = evaluate(full.params)
     RESULTS["eval_full_mean_angle_deg"] = float(np.mean(mc_full.per_run["mean_angle_error_deg"]))
-    print(f"jaxatt.fit: {full.status}; held-out evaluation {RESULTS['eval_full_mean_angle_deg']:.3f} deg "
-          f"(one-number tuning: {RESULTS['eval_tuned_mean_angle_deg']:.3f} deg)")
+    print(
+        f"jaxatt.fit: {full.status}; held-out evaluation {RESULTS['eval_full_mean_angle_deg']:.3f} deg "
+        f"(one-number tuning: {RESULTS['eval_tuned_mean_angle_deg']:.3f} deg)"
+    )
     fig, ax = plt.subplots(figsize=(6.5, 3.6), constrained_layout=True)
     plot.tuning_curves(full.history, ax=ax, title="jaxatt.fit: every entry of gain_z (from the tuned factor)")
     show(fig, "05_tuning_curves_full")

@@ -1,4 +1,5 @@
 """Compare two numbers files written by numbers_v01.py / numbers_v02.py: the largest relative difference per entry."""
+
 import json
 import sys
 

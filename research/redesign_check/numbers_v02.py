@@ -3,8 +3,8 @@
 Run from the repository root: python research/redesign_check/numbers_v02.py OUT.json; then
 python research/redesign_check/compare.py v01.json v02.json.
 """
+
 import json
-import math
 import sys
 
 import jax
@@ -30,24 +30,62 @@ def lists(d):
 for mod in (batista_ges, batista_so3):
     cfg = mod.Config(duration=300.0, window_start=200.0)
     for dt_name, dt in (("f64", jnp.float64), ("f32", jnp.float32)):
-        res = montecarlo.monte_carlo(mod.scenario(cfg), mod.observer(cfg), mod.params(cfg, dtype=jnp.float64), runs=4,
-                                     duration=cfg.duration, dt=cfg.dt, seed=3, errors_fn=mod.errors,
-                                     window_start=cfg.window_start, chunk=2, dtype=dt)
+        res = montecarlo.monte_carlo(
+            mod.scenario(cfg),
+            mod.observer(cfg),
+            mod.params(cfg, dtype=jnp.float64),
+            runs=4,
+            duration=cfg.duration,
+            dt=cfg.dt,
+            seed=3,
+            errors_fn=mod.errors,
+            window_start=cfg.window_start,
+            chunk=2,
+            dtype=dt,
+        )
         out[f"mc/{mod.NAME}/{dt_name}"] = lists(res.per_run)
 
-cfg = complementary.Config(scenario="rotating", duration=30.0, window_start=20.0, k_i=0.1, gyro_noise_std=0.01,
-                           meas_noise_std=0.01, gyro_bias_deg_s=(1.0, -1.0, 0.5))
-res = montecarlo.monte_carlo(complementary.scenario(cfg), complementary.observer(cfg),
-                             complementary.params(cfg, dtype=jnp.float64), runs=3, duration=cfg.duration, dt=cfg.dt,
-                             seed=1, errors_fn=complementary.errors, window_start=cfg.window_start)
+cfg = complementary.Config(
+    scenario="rotating",
+    duration=30.0,
+    window_start=20.0,
+    k_i=0.1,
+    gyro_noise_std=0.01,
+    meas_noise_std=0.01,
+    gyro_bias_deg_s=(1.0, -1.0, 0.5),
+)
+res = montecarlo.monte_carlo(
+    complementary.scenario(cfg),
+    complementary.observer(cfg),
+    complementary.params(cfg, dtype=jnp.float64),
+    runs=3,
+    duration=cfg.duration,
+    dt=cfg.dt,
+    seed=1,
+    errors_fn=complementary.errors,
+    window_start=cfg.window_start,
+)
 out["mc/complementary"] = lists(res.per_run)
 
 cfg = X.config("nlio-case1", duration=60.0, windows=(("transient", 0.0, 20.0), ("steady", 40.0, 60.0)))
 for name in ("NLO", "NLIO-FG", "NLIO-TV", "MEKF"):
-    res = montecarlo.monte_carlo(X.scenario(cfg), X.observer(cfg, name), X.params(cfg, name, dtype=jnp.float64),
-                                 runs=3, duration=cfg.duration, dt=cfg.dt, seed=0, errors_fn=X.errors,
-                                 window_start=40.0, hold=cfg.hold, chunk=3, windows=cfg.windows,
-                                 init_params=X.random_initial_attitude, trace_every=100, trace_fn=X.trace)
+    res = montecarlo.monte_carlo(
+        X.scenario(cfg),
+        X.observer(cfg, name),
+        X.params(cfg, name, dtype=jnp.float64),
+        runs=3,
+        duration=cfg.duration,
+        dt=cfg.dt,
+        seed=0,
+        errors_fn=X.errors,
+        window_start=40.0,
+        hold=cfg.hold,
+        chunk=3,
+        windows=cfg.windows,
+        init_params=X.random_initial_attitude,
+        trace_every=100,
+        trace_fn=X.trace,
+    )
     out[f"mc/nlio-case1/{name}"] = lists(res.per_run)
     out[f"mc/nlio-case1/{name}/trace_abs_euler_mean"] = np.asarray(res.traces["abs_euler"]).mean(axis=(0, 2)).tolist()
 
@@ -63,8 +101,9 @@ out["run/ges/n"] = int(o.r.shape[0]) - 1
 for name, dur in (("batista-ges", 60.0), ("batista-so3", 60.0), ("nlio-case1", 30.0)):
     st = studies.get(name).setup(duration=dur)
     (ss, se), (ts, te) = st.loss_windows["steady"], st.loss_windows["transient"]
-    spec = losses.loss_spec(st.loss_kind, steady_start=ss, steady_end=se, transient_start=ts, transient_end=te,
-                            w_transient=0.5)
+    spec = losses.loss_spec(
+        st.loss_kind, steady_start=ss, steady_end=se, transient_start=ts, transient_end=te, w_transient=0.5
+    )
     bound = P.for_gains(registry.get(st.entry).gains).bind(st.params)
     obj = fitter.simulated_objective(st, bound, spec)
     keys = montecarlo.run_keys(0, range(4))
@@ -94,8 +133,12 @@ try:
     bound = P.for_gains(e.gains).bind(p0)
     obj, n, take = fitter.recorded_objective(registry.recorded_observer(e), bound, trs[:2], dtype=jnp.float64)
     (l, aux), gr = jax.value_and_grad(obj, has_aux=True)(bound.init(), take(np.arange(2)))
-    out["broad_loss/robust"] = {"loss": float(l), "rmse": np.asarray(aux["rmse_deg"]).tolist(),
-                                "grad": [float(gr[k]) for k in ra.TUNABLE], "names": list(ra.TUNABLE)}
+    out["broad_loss/robust"] = {
+        "loss": float(l),
+        "rmse": np.asarray(aux["rmse_deg"]).tolist(),
+        "grad": [float(gr[k]) for k in ra.TUNABLE],
+        "names": list(ra.TUNABLE),
+    }
 except ImportError as e:
     print("BROAD skipped:", e)
 

@@ -10,6 +10,7 @@
 Derived from the BROAD dataset (D. Laidig, M. Caruso, A. Cereatti, T. Seel, "BROAD - A Benchmark for Robust
 Inertial Orientation Estimation", Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0).
 """
+
 from __future__ import annotations
 
 import json
