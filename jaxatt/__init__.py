@@ -8,35 +8,64 @@ simulated AHRS scenario; the papers' studies in :mod:`jaxatt.studies`; observers
 Conventions: quaternions (w, x, y, z); R maps sensor/body to the navigation frame; SI units (rad/s, m/s^2, s);
 frames named at every public function (the Batista papers simulate in NED, BROAD uses ENU; :mod:`jaxatt.frames`).
 jaxatt never switches JAX's float64 mode: enable it with ``jax.config.update("jax_enable_x64", True)``.
+
+The names below are imported on first use, so ``import jaxatt`` (and ``jaxatt --help``) does not import JAX.
 """
+
+import importlib
 
 __version__ = "0.2.0"
 
-from . import data, engine, frames, integrate, metrics, montecarlo, observers, sim, so3  # noqa: E402
-from .api import BroadScore, Estimate, broad_score, filter, monte_carlo  # noqa: E402
-from .fitting.fitter import FitResult, fit  # noqa: E402
-from .types import ImuSample, Interval, Observer, VectorSample  # noqa: E402
-
-__all__ = [
-    "filter",
-    "broad_score",
-    "fit",
-    "monte_carlo",
-    "Estimate",
-    "BroadScore",
-    "FitResult",
-    "ImuSample",
-    "VectorSample",
-    "Interval",
-    "Observer",
+#: public name -> (module, attribute) imported on first use
+_NAMES = {
+    "filter": ("api", "filter"),
+    "broad_score": ("api", "broad_score"),
+    "fit": ("fitting.fitter", "fit"),
+    "monte_carlo": ("api", "monte_carlo"),
+    "Estimate": ("api", "Estimate"),
+    "BroadScore": ("api", "BroadScore"),
+    "FitResult": ("fitting.fitter", "FitResult"),
+    "ImuSample": ("types", "ImuSample"),
+    "VectorSample": ("types", "VectorSample"),
+    "Interval": ("types", "Interval"),
+    "Observer": ("types", "Observer"),
+}
+_SUBMODULES = (
+    "analysis",
+    "api",
     "data",
     "engine",
+    "fitting",
     "frames",
     "integrate",
+    "io",
     "metrics",
     "montecarlo",
     "observers",
+    "plot",
+    "progress",
+    "schedule",
+    "sharding",
     "sim",
     "so3",
-    "__version__",
-]
+    "studies",
+    "types",
+)
+
+__all__ = list(_NAMES) + list(_SUBMODULES) + ["__version__"]
+
+
+def __getattr__(name):
+    if name in _NAMES:
+        module, attr = _NAMES[name]
+        value = getattr(importlib.import_module(f"{__name__}.{module}"), attr)
+    elif name in _SUBMODULES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module 'jaxatt' has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -475,9 +475,7 @@ def monte_carlo(
         dtype=dt_,
         progress=progress,
     )
-    for k, v in res.per_run.items():
-        bad = ~np.isfinite(np.asarray(v, float))
-        if bad.any():
-            run = int(res.run_indices[np.argmax(bad.reshape(len(bad), -1).any(axis=1))])
-            raise FloatingPointError(f"{name}: metric {k} is not finite in run {run} (seed {seed})")
+    bad = res.first_nonfinite()
+    if bad:
+        raise FloatingPointError(f"{name}: {bad} (seed {seed})")
     return res

@@ -10,6 +10,8 @@ run in float64 unless ``--float32``. Bad input is one line on stderr naming the 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from typing import List, Optional
 
@@ -122,11 +124,30 @@ def _mc_flags(p: argparse.ArgumentParser, *, study_flags: bool = True):
     p.add_argument("--chunk", type=_count(1), default=250, help="runs vmapped together (memory vs speed)")
     p.add_argument("--json", default=None, help="write results JSON here (updated after every chunk)")
     p.add_argument("--plot", default=None, help="write a PNG of the study's figure here")
-    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    _run_flags(p)
+
+
+def _run_flags(p: argparse.ArgumentParser):
+    """--resume / --quiet / --progress of the Monte Carlo commands."""
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="run only the runs not yet saved beside --json (<json>.runs.npz) by an interrupted run of the same flags",
+    )
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    out.add_argument("--progress", action="store_true", help="progress lines even when stderr is not a terminal")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block): ``jaxatt tune: error: argument --steps: ... (see --help)``."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="jaxatt", description="Batched, differentiable attitude observers in JAX.")
+    ap = _Parser(prog="jaxatt", description="Batched, differentiable attitude observers in JAX.")
     ap.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = ap.add_subparsers(dest="command", required=True)
 
@@ -221,7 +242,7 @@ def _parser() -> argparse.ArgumentParser:
     vp.add_argument("--seed", type=int, default=1)
     vp.add_argument("--duration", type=_positive, default=None)
     vp.add_argument("--json", default=None)
-    vp.add_argument("--quiet", action="store_true")
+    _run_flags(vp)
 
     bp = sub.add_parser("broad", help="run an observer on BROAD trials and print the BROAD metric")
     bp.add_argument("--data-dir", required=True, help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
@@ -373,6 +394,7 @@ def _reproduce(args) -> int:
             quiet=args.quiet,
             progress=_progress(args),
             title=title,
+            resume=args.resume,
         )
     )
 
@@ -462,12 +484,16 @@ def _simulate(args) -> int:
             quiet=args.quiet,
             progress=_progress(args),
             title=title,
+            resume=args.resume,
         )
     )
 
 
 def _progress(args):
-    return None if getattr(args, "quiet", False) or not sys.stderr.isatty() else True
+    """Progress lines: on a terminal unless --quiet; elsewhere only with --progress."""
+    if getattr(args, "quiet", False):
+        return None
+    return True if getattr(args, "progress", False) or sys.stderr.isatty() else None
 
 
 def _finish_study(payload: dict) -> int:
@@ -481,8 +507,10 @@ def _finish_study(payload: dict) -> int:
 # tune / evaluate
 # ------------------------------------------------------------------------------------------------------------
 def _tune(args) -> int:
+    from . import io
     from .fitting import fitter
 
+    io.check_output_path(args.out, "--out")
     config = {"duration": args.duration} if args.duration is not None else None
     res = fitter.fit(
         None,
@@ -550,6 +578,8 @@ def _evaluate(args) -> int:
         cfg=cfg,
         gains_source=source,
         quiet=args.quiet,
+        progress=_progress(args),
+        resume=args.resume,
     )
     return _finish_study(payload)
 
@@ -612,9 +642,11 @@ def _broad(args) -> int:
 
 
 def _broad_tune(args) -> int:
+    from . import io
     from .data import broad
     from .fitting import fitter
 
+    io.check_output_path(args.out, "--out")
     trials = broad.load(args.data_dir, args.trials)
     res = fitter.fit(
         args.observer,
@@ -660,6 +692,8 @@ def _load_any_log(path: str):
 
     from .data import broad, logs
 
+    if not Path(path).is_file():
+        raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
     if Path(path).suffix.lower() in (".hdf5", ".h5"):
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
@@ -708,14 +742,12 @@ def _filter(args) -> int:
                 cols.append(v[:, i].astype(float))
                 names.append(f"{k}_{ax}")
     table = np.column_stack(cols)
-    import os
-    import tempfile
 
-    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp", dir=str(out.parent))
-    with os.fdopen(fd, "w") as f:
+    def write(f):
         f.write(",".join(names) + "\n")
         np.savetxt(f, table, delimiter=",", fmt="%.17g")
-    os.replace(tmp, out)
+
+    io.write_atomic(out, write)
     print(
         f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
         f"with columns {', '.join(names)}"
@@ -738,10 +770,9 @@ def _excitation(args) -> int:
         res = analysis.excitation_of_scenario(scn, duration=args.duration, dt=args.dt, window=args.window)
         source = f"scenario {args.scenario}, {args.duration:g} s at {1 / args.dt:g} Hz"
     else:
-        from .data import logs
         from .observers import complementary as comp
 
-        samples = logs.load_log(args.log)
+        samples = _load_any_log(args.log)[0]
         if samples.acc is None and samples.mag is None:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
@@ -809,12 +840,27 @@ _COMMANDS = {
 }
 
 
+_INTERRUPTED = []
+
+
+def _on_sigint(signum, frame):
+    """Ctrl-C: remember it and raise KeyboardInterrupt where Python runs next (a second Ctrl-C leaves at once)."""
+    if _INTERRUPTED:
+        os._exit(130)
+    _INTERRUPTED.append(signum)
+    raise KeyboardInterrupt
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    import jax
-
-    jax.config.update("jax_enable_x64", True)  # the entry point decides the precision (the library never does)
     try:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)  # the entry point decides the precision (the library never does)
+        from . import api, studies  # noqa: F401 - imported before any work: an interrupt in an import is not lost
+
+        if _INTERRUPTED:
+            raise KeyboardInterrupt
         return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("jaxatt: interrupted (finished work is saved)", file=sys.stderr)
@@ -831,5 +877,22 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 1
 
 
+def entry() -> None:
+    """The ``jaxatt`` command: :func:`main` with Ctrl-C handled (exit status 130, what was finished is saved; the
+    process then leaves without the interpreter's teardown, which can crash while XLA threads are busy)."""
+    previous = signal.signal(signal.SIGINT, _on_sigint)
+    try:
+        rc = main()
+    except KeyboardInterrupt:
+        rc = 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if _INTERRUPTED or rc == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

@@ -13,7 +13,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
@@ -56,21 +56,24 @@ def check_output_path(path, flag: str = "output") -> Optional[Path]:
         raise ValueError(f"{flag} {path}: folder {parent} is not writable")
     if p.exists() and not os.access(p, os.W_OK):
         raise ValueError(f"{flag} {path}: file is not writable")
+    try:  # the real test (permissions can say yes where a write fails: /proc, read-only mounts, as root)
+        fd, probe = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(parent))
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: cannot write in folder {parent} ({e.strerror or e})") from None
     return p
 
 
-def write_json(path, payload: dict) -> None:
-    """Write ``payload`` as JSON atomically (temporary file in the same folder, fsync, rename): an interrupted
-    write never leaves a broken or partial file. Nothing is written for ``path`` None."""
-    if not path:
-        return
+def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> None:
+    """Write a file atomically: ``write(file_object)`` fills a temporary file in the same folder, which is synced
+    and renamed onto ``path``; an interrupted write never leaves a broken or partial file (nor a stray temporary)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(p.parent))
     try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(to_jsonable(payload), f, indent=1)
-            f.write("\n")
+        with os.fdopen(fd, "wb" if binary else "w") as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)
@@ -81,6 +84,23 @@ def write_json(path, payload: dict) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_json(path, payload: dict) -> None:
+    """Write ``payload`` as JSON atomically (:func:`write_atomic`). Nothing is written for ``path`` None."""
+    if not path:
+        return
+
+    def write(f):
+        json.dump(to_jsonable(payload), f, indent=1)
+        f.write("\n")
+
+    write_atomic(path, write)
+
+
+def write_npz(path, arrays: Mapping[str, Any]) -> None:
+    """Write numpy arrays as an uncompressed NPZ atomically (:func:`write_atomic`), at ``path`` exactly."""
+    write_atomic(path, lambda f: np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()}), binary=True)
 
 
 def read_json(path, what: str = "file") -> dict:

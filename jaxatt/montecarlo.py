@@ -151,6 +151,11 @@ def default_trace(truth, out, errors: Dict[str, jax.Array], angle_deg) -> Dict[s
     return rec
 
 
+#: key of the metrics reducer's output: per run, the time (s) of the first non-finite estimate (inf if none); moved
+#: out of the metrics into ``MonteCarloResult.first_nonfinite_t``
+FIRST_NONFINITE = "first_nonfinite_t_s"
+
+
 @functools.lru_cache(maxsize=64)
 def metrics_reducer(
     errors_fn: ErrorsFn,
@@ -166,6 +171,11 @@ def metrics_reducer(
     ``trace_every`` the records ``trace_fn(truth, out, errors, angle_deg)`` of every ``trace_every``-th estimate."""
     trace_fn = trace_fn or default_trace
 
+    def first_bad(t, r, first):
+        """The time of the first non-finite estimate (inf while every estimate is finite)."""
+        bad = ~jnp.all(jnp.isfinite(r))
+        return jnp.where(bad & (t < first), jnp.asarray(t, first.dtype), first)
+
     def init(t0, truth0, out0):
         r0 = engine.estimate_r(out0)
         dtype = r0.dtype
@@ -175,10 +185,11 @@ def metrics_reducer(
         rec = None
         if trace_every:
             rec = trace_fn(truth0, out0, errors, M.angle_error_deg(truth0.r.astype(dtype), r0))
-        return (M.window_init(shapes, dtype), mom), rec
+        first = first_bad(t0, r0, jnp.asarray(jnp.inf, jnp.result_type(t0)))
+        return (M.window_init(shapes, dtype), mom, first), rec
 
     def update(acc, t, truth, out):
-        win, mom = acc
+        win, mom, first = acc
         errors = errors_fn(truth, out)
         r = engine.estimate_r(out)
         angle = M.angle_error_deg(truth.r.astype(r.dtype), r)
@@ -186,12 +197,13 @@ def metrics_reducer(
         if windows:
             mom = M.moments_update(mom, errors, t, windows, tol)
         rec = trace_fn(truth, out, errors, angle) if trace_every else None
-        return (win, mom), rec
+        return (win, mom, first_bad(t, r, first)), rec
 
     def finish(acc):
         out = M.window_summary(acc[0])
         if windows:
             out.update(M.moments_summary(acc[1], windows))
+        out[FIRST_NONFINITE] = acc[2]
         return out
 
     return engine.Reducer(init, update, finish, trace_every)
@@ -335,13 +347,35 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
 
 class MonteCarloResult(NamedTuple):
     """Per-run summaries (name -> (n_runs,) numpy array), optional decimated traces (name -> (n_runs, n)),
-    the run indices done, wall time (s), and whether every requested run finished."""
+    the run indices done, wall time (s), whether every requested run finished, and per run the time (s) of the
+    first non-finite estimate (inf when every estimate is finite)."""
 
     per_run: Dict[str, np.ndarray]
     traces: Optional[Dict[str, np.ndarray]]
     run_indices: np.ndarray
     wall_s: float
     complete: bool
+    first_nonfinite_t: Optional[np.ndarray] = None
+
+    def first_nonfinite(self) -> Optional[str]:
+        """Where the first non-finite result appeared ("run k: ... at t = ... s"), or None when all are finite."""
+        n = len(self.run_indices)
+        bad = np.zeros(n, bool)
+        what = {}
+        for k, v in self.per_run.items():
+            b = ~np.isfinite(np.asarray(v, float).reshape(n, -1)).all(axis=1)
+            for i in np.flatnonzero(b & ~bad):
+                what[int(i)] = k
+            bad |= b
+        t_bad = np.asarray(self.first_nonfinite_t, float) if self.first_nonfinite_t is not None else np.full(n, np.inf)
+        bad |= np.isfinite(t_bad)
+        if not bad.any():
+            return None
+        i = int(np.flatnonzero(bad)[np.argmin(np.asarray(self.run_indices)[bad])])
+        where = f"run {int(self.run_indices[i])}"
+        if np.isfinite(t_bad[i]):
+            return f"{where}: the estimate is first non-finite at t = {float(t_bad[i]):.6g} s"
+        return f"{where}: metric {what[i]} is not finite (the estimates are finite)"
 
 
 def monte_carlo(
@@ -366,7 +400,7 @@ def monte_carlo(
     init_params: Optional[Callable] = None,
     devices=None,
     progress=None,
-    skip_runs=(),
+    previous: Optional[MonteCarloResult] = None,
 ) -> MonteCarloResult:
     """``runs`` simulated runs, vmapped in chunks of ``chunk`` runs, metrics reduced on the fly.
 
@@ -378,8 +412,9 @@ def monte_carlo(
     same noise and the same initial estimates.
 
     After each chunk ``on_chunk(partial_result)`` is called (save, progress). On KeyboardInterrupt the runs
-    finished so far are returned with ``complete=False``: nothing computed is lost. ``skip_runs``: run indices
-    already done elsewhere (a resumed study), left out of this call.
+    finished so far are returned with ``complete=False``: nothing computed is lost. ``previous``: the result of an
+    interrupted call with the same arguments (a resumed study): its runs are not run again and are part of every
+    result (runs in index order), which then equals an uninterrupted call's.
 
     ``devices`` (default: every visible device): the runs of each chunk are split over them
     (:mod:`jaxatt.sharding`; the chunk is rounded up to a multiple of the device count, padding runs dropped);
@@ -413,7 +448,8 @@ def monte_carlo(
         mesh=mesh,
         progress=hook,
     )
-    todo = np.asarray([k for k in range(runs) if k not in set(int(i) for i in skip_runs)], int)
+    have = set() if previous is None else set(int(i) for i in previous.run_indices)
+    todo = np.asarray([k for k in range(runs) if k not in have], int)
     chunk = max(1, min(chunk, max(len(todo), 1)))
     if mesh is not None:
         chunk = -(-chunk // mesh.size) * mesh.size  # a multiple of the device count
@@ -421,12 +457,19 @@ def monte_carlo(
     per_run: Dict[str, list] = {}
     traces: Dict[str, list] = {}
     done: list = []
+    first_bad: list = []
     t0 = time.perf_counter()
 
     def result(complete):
-        pr = {k: np.concatenate(v) for k, v in per_run.items()}
-        tr = {k: np.concatenate(v) for k, v in traces.items()} if traces else None
-        return MonteCarloResult(pr, tr, np.asarray(done, int), time.perf_counter() - t0, complete)
+        new = MonteCarloResult(
+            {k: np.concatenate(v) for k, v in per_run.items()},
+            {k: np.concatenate(v) for k, v in traces.items()} if traces else None,
+            np.asarray(done, int),
+            time.perf_counter() - t0,
+            complete,
+            np.concatenate(first_bad) if first_bad else np.zeros(0),
+        )
+        return new if previous is None else merge_results(previous, new, complete)
 
     try:
         for start in range(0, len(todo), chunk):
@@ -442,6 +485,7 @@ def monte_carlo(
                 prog.runs_done += len(idx)
                 prog.chunk_runs = 0
                 prog.report(0)
+            first_bad.append(np.asarray(summ.pop(FIRST_NONFINITE), float)[: len(idx)])
             for k, v in summ.items():
                 per_run.setdefault(k, []).append(np.asarray(v)[: len(idx)])
             if trace is not None:
@@ -451,7 +495,31 @@ def monte_carlo(
             if on_chunk is not None:
                 on_chunk(result(len(done) == len(todo)))
     except KeyboardInterrupt:
-        if not done:
+        if not done and previous is None:
             raise
         return result(False)
     return result(True)
+
+
+def merge_results(a: MonteCarloResult, b: MonteCarloResult, complete: bool) -> MonteCarloResult:
+    """The runs of two results of the same Monte Carlo (disjoint run indices) as one, in run-index order."""
+    idx = np.concatenate([a.run_indices, b.run_indices]).astype(int)
+    order = np.argsort(idx, kind="stable")
+
+    def cat(x, y):
+        parts = [d for d, r in ((x, a), (y, b)) if len(r.run_indices)]
+        if not parts or any(d is None for d in parts):
+            return None if any(d is None for d in parts) else {}
+        return {k: np.concatenate([d[k] for d in parts])[order] for k in parts[0]}
+
+    first = [
+        r.first_nonfinite_t if r.first_nonfinite_t is not None else np.full(len(r.run_indices), np.inf) for r in (a, b)
+    ]
+    return MonteCarloResult(
+        cat(a.per_run, b.per_run),
+        cat(a.traces, b.traces),
+        idx[order],
+        a.wall_s + b.wall_s,
+        complete,
+        np.concatenate(first)[order],
+    )

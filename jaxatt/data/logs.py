@@ -25,6 +25,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from .. import io
 from ..types import ImuSample
 
 __all__ = ["load_log", "save_log", "load_csv", "save_csv", "load_npz", "save_npz", "check_log", "CSV_COLUMNS"]
@@ -199,8 +200,7 @@ def save_npz(path, samples: ImuSample, quat_true=None) -> None:
             arrays[name] = getattr(samples, name)
     if q is not None:
         arrays["quat_true"] = q
-    with open(path, "wb") as f:  # a file object: np.savez would otherwise append ".npz" to other suffixes
-        np.savez(f, **arrays)
+    io.write_npz(path, arrays)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -222,7 +222,13 @@ def load_log(path, *, with_truth: bool = False):
     (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. Raises ValueError on wrong shapes,
     missing columns, non-numeric fields, non-finite or non-increasing time.
     """
-    return (load_csv if _kind(path) == "csv" else load_npz)(path, with_truth=with_truth)
+    kind = _kind(path)
+    if not Path(path).is_file():
+        raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
+    try:
+        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth)
+    except (OSError, UnicodeDecodeError, EOFError) as e:
+        raise ValueError(f"log {path}: cannot read it ({e})") from None
 
 
 def save_log(path, samples: ImuSample, quat_true=None) -> None:

@@ -208,15 +208,6 @@ def _log(quiet):
     return (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
 
 
-def _first_nonfinite(per_run: Mapping[str, np.ndarray], run_indices) -> Optional[str]:
-    for k, v in per_run.items():
-        v = np.asarray(v, float)
-        bad = ~np.isfinite(v.reshape(len(v), -1)).all(axis=1)
-        if bad.any():
-            return f"metric {k} is not finite in run {int(np.asarray(run_indices)[np.argmax(bad)])}"
-    return None
-
-
 def reproduce(
     study: Study,
     cfg,
@@ -232,6 +223,7 @@ def reproduce(
     title: Optional[str] = None,
     observers: Optional[Mapping[str, Tuple[Any, Any]]] = None,
     extra: Optional[dict] = None,
+    resume: bool = False,
 ) -> dict:
     """Monte Carlo of every compared observer of ``study`` at ``cfg``: prints the study's tables beside the
     paper's numbers, writes the JSON (see the module docstring) after every chunk and at the end, and the figure.
@@ -239,21 +231,34 @@ def reproduce(
     ``observers`` (label -> (Observer, params)) replaces the study's (e.g. tuned gains); ``extra`` keys are added
     to the payload. Returns the payload; ``payload["complete"]`` is False when interrupted (Ctrl-C: the finished
     runs are kept) and ``payload["nonfinite"]`` names the first non-finite metric (run index) if any.
+
+    With ``json_path``, every finished run's metrics and traces are also saved after every chunk to
+    ``runs_file(json_path)`` (NPZ); ``resume=True`` reads it and runs only the runs not in it (same study, config,
+    runs, seed, precision and gains, else ValueError): the result equals an uninterrupted run's. A complete result
+    already at ``json_path`` is not replaced by the partial result of an interrupted run.
     """
     from .. import montecarlo
 
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
+    if resume and not json_path:
+        raise ValueError("--resume needs --json (the finished runs are saved beside it)")
     io.check_output_path(json_path, "--json")
     io.check_output_path(plot_path, "--plot")
     log = _log(quiet)
     obs = dict(observers) if observers is not None else study.observers(cfg)
     for _, (_, p) in obs.items():
         study.check_params(p)
+    dtype_name = str(np.dtype(dtype)) if dtype is not None else "float64"
+    spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs)
+    saved = _read_runs(runs_file(json_path), spec) if resume else {}
+    if resume:
+        n = min((len(r.run_indices) for r in saved.values()), default=0) if len(saved) == len(obs) else 0
+        log(f"resuming: {n}/{runs} runs of every observer already saved in {runs_file(json_path)}")
+    keep_complete = bool(json_path) and not resume and _is_complete(json_path)
     published = study.published(cfg)
     why = study.comparable(cfg)
     n_steps = int(round(cfg.duration / cfg.dt))
-    dtype_name = str(np.dtype(dtype)) if dtype is not None else "float64"
     payload = {
         "experiment": title or f"{study.name} reproduce",
         "study": study.name,
@@ -296,31 +301,39 @@ def reproduce(
             log(f"  {label}: {len(res.run_indices)}/{runs} runs, {time.perf_counter() - t_all:.1f} s")
             payload["observers"][label] = entry(res)
             _finish(payload, complete=False)
-            io.write_json(json_path, payload)
+            if json_path:
+                _write_runs(runs_file(json_path), spec, {**results, label: res})
+            if not keep_complete:
+                io.write_json(json_path, payload)
 
-        res = montecarlo.monte_carlo(
-            study.scenario(cfg),
-            observer,
-            params,
-            runs=runs,
-            duration=cfg.duration,
-            dt=cfg.dt,
-            seed=seed,
-            errors_fn=study.errors,
-            window_start=study.window_start(cfg),
-            hold=study.hold(cfg),
-            chunk=chunk,
-            trace_every=trace_every,
-            trace_fn=trace_fn,
-            dtype=dtype,
-            windows=study.windows(cfg),
-            init_params=study.init_params(cfg),
-            on_chunk=on_chunk,
-            progress=progress,
-        )
+        previous = saved.get(label)
+        if previous is not None and previous.complete:  # resumed: nothing left to run
+            res = previous
+        else:
+            res = montecarlo.monte_carlo(
+                study.scenario(cfg),
+                observer,
+                params,
+                runs=runs,
+                duration=cfg.duration,
+                dt=cfg.dt,
+                seed=seed,
+                errors_fn=study.errors,
+                window_start=study.window_start(cfg),
+                hold=study.hold(cfg),
+                chunk=chunk,
+                trace_every=trace_every,
+                trace_fn=trace_fn,
+                dtype=dtype,
+                windows=study.windows(cfg),
+                init_params=study.init_params(cfg),
+                on_chunk=on_chunk,
+                progress=progress,
+                previous=previous,
+            )
         results[label] = res
         payload["observers"][label] = entry(res)
-        bad = _first_nonfinite(res.per_run, res.run_indices)
+        bad = res.first_nonfinite()
         if bad and "nonfinite" not in payload:
             payload["nonfinite"] = f"{label}: {bad}"
         complete &= res.complete
@@ -352,10 +365,98 @@ def reproduce(
         study.plot(cfg, payload, results, plot_path, dtype=dtype)
         payload["plot"] = plot_path
         print(f"plot written to {plot_path}")
-    io.write_json(json_path, payload)
     if json_path:
-        print(f"results written to {json_path}")
+        _write_runs(runs_file(json_path), spec, results)
+    if payload["complete"] or not keep_complete:
+        io.write_json(json_path, payload)
+        if json_path:
+            print(f"results written to {json_path}" + ("" if payload["complete"] else " (complete: false)"))
+    else:
+        print(f"the complete result already in {json_path} is kept")
+    if json_path and not payload["complete"]:
+        print(f"finished runs saved in {runs_file(json_path)}: rerun with --resume to finish")
     return payload
+
+
+def runs_file(json_path) -> Optional[str]:
+    """Where :func:`reproduce` saves the finished runs of ``json_path`` (for ``resume``): ``<json_path>.runs.npz``."""
+    return f"{json_path}.runs.npz" if json_path else None
+
+
+def _runs_spec(study, cfg, runs, seed, dtype_name, obs) -> str:
+    """What must match for saved runs to be resumed: study, config, runs, seed, precision, labels and gains."""
+    import json
+
+    gains = {label: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(p)] for label, (_, p) in obs.items()}
+    return json.dumps(
+        {
+            "study": study.name,
+            "config": config_dict(cfg),
+            "runs": runs,
+            "seed": seed,
+            "dtype": dtype_name,
+            "gains": gains,
+        },
+        sort_keys=True,
+        default=str,
+    )
+
+
+def _write_runs(path, spec: str, results: Mapping[str, Any]) -> None:
+    arrays: Dict[str, Any] = {"spec": np.asarray(spec), "labels": np.asarray(list(results), dtype=str)}
+    for i, res in enumerate(results.values()):
+        arrays[f"{i}/run_indices"] = res.run_indices
+        arrays[f"{i}/complete"] = np.asarray(res.complete)
+        arrays[f"{i}/wall_s"] = np.asarray(res.wall_s)
+        if res.first_nonfinite_t is not None:
+            arrays[f"{i}/first_nonfinite_t"] = res.first_nonfinite_t
+        for k, v in res.per_run.items():
+            arrays[f"{i}/per_run/{k}"] = v
+        for k, v in (res.traces or {}).items():
+            arrays[f"{i}/traces/{k}"] = v
+    io.write_npz(path, arrays)
+
+
+def _read_runs(path, spec: str) -> Dict[str, Any]:
+    """label -> MonteCarloResult saved by :func:`_write_runs`; {} when there is no file."""
+    import os
+
+    from ..montecarlo import MonteCarloResult
+
+    if not os.path.exists(path):
+        return {}
+    try:
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--resume: {path} is not a readable runs file ({e})") from None
+    if str(d.get("spec")) != spec:
+        raise ValueError(
+            f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision or gains differ); "
+            "rerun with the same flags, or without --resume to start again"
+        )
+    out = {}
+    for i, label in enumerate(d["labels"].tolist()):
+        pre = f"{i}/"
+        per_run = {k[len(pre + "per_run/") :]: v for k, v in d.items() if k.startswith(pre + "per_run/")}
+        traces = {k[len(pre + "traces/") :]: v for k, v in d.items() if k.startswith(pre + "traces/")}
+        out[label] = MonteCarloResult(
+            per_run,
+            traces or None,
+            d[pre + "run_indices"],
+            float(d[pre + "wall_s"]),
+            bool(d[pre + "complete"]),
+            d.get(pre + "first_nonfinite_t"),
+        )
+    return out
+
+
+def _is_complete(json_path) -> bool:
+    """Whether ``json_path`` holds a complete result of an earlier run."""
+    try:
+        return bool(io.read_json(json_path).get("complete"))
+    except ValueError:
+        return False
 
 
 def _finish(payload: dict, complete: bool) -> None:
@@ -380,10 +481,13 @@ def evaluate(
     dtype=None,
     quiet: bool = False,
     extra: Optional[dict] = None,
+    progress=None,
+    resume: bool = False,
 ) -> dict:
     """Monte Carlo of the study's tuned observer with ``params`` (e.g. from a gains file) on ``runs`` runs of base
     ``seed``; with ``compare_paper`` also the paper's gains on the same runs: ``paper_gains_metrics`` and
-    ``comparison`` (mean of each metric, tuned / paper). Same JSON layout as :func:`reproduce`."""
+    ``comparison`` (mean of each metric, tuned / paper). Same JSON layout as :func:`reproduce` (``progress``,
+    ``resume``: as there; the comparison with the paper's gains is run again on resume)."""
     from ..fitting import gainsfile
     from ..observers import registry
 
@@ -403,6 +507,8 @@ def evaluate(
         quiet=quiet,
         title=f"{study.name} evaluate",
         observers=obs,
+        progress=progress,
+        resume=resume,
         extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source, **(extra or {})},
     )
     same = all(
