@@ -23,7 +23,10 @@ exact for zero-order-hold signals), from cumulative sums in float64 numpy (offli
 over time). ∫ d b̊/dτ is the telescoped difference of the sampled b̊ over the window (a sampled log cannot
 tell a jump from a fast change, so jumps of a switching b̊ count, unlike the a.e. derivative in (6)).
 Omega is the gyro sample (minus ``gyro_bias`` if given). Directions are normalised; a sample with a
-non-finite or zero vector contributes nothing (a missing reading).
+non-finite or zero vector contributes nothing (a missing reading). On a log (:func:`excitation_from_samples`) a
+constant reference counts only at the samples where its sensor's reading is valid (finite, non-zero). A gap in the
+timestamps longer than ``max_gap`` (default 10 x the median sample interval) contributes nothing: no data is not
+excitation.
 """
 
 from __future__ import annotations
@@ -95,15 +98,26 @@ def _directions(v, T: int, name: str):
     return u, ok
 
 
-def _cumulative(f: np.ndarray, t: np.ndarray, rule: str) -> np.ndarray:
-    """C[k] = ∫_{t0}^{t_k} f (trapezoid or left rectangle over the samples), C[0] = 0; f (T, ...)."""
-    dt = np.diff(t).reshape((-1,) + (1,) * (f.ndim - 1))
+def _intervals(t: np.ndarray, max_gap: Optional[float]) -> np.ndarray:
+    """(T-1,) sample intervals (s), zero for a gap longer than ``max_gap`` (default 10 x the median interval)."""
+    d = np.diff(t)
+    if max_gap is None:
+        max_gap = 10.0 * float(np.median(d))
+    elif not (math.isfinite(float(max_gap)) and max_gap > 0):
+        raise ValueError(f"max_gap must be a finite positive number of seconds, got {max_gap}")
+    return np.where(d <= max_gap, d, 0.0)
+
+
+def _cumulative(f: np.ndarray, d: np.ndarray, rule: str) -> np.ndarray:
+    """C[k] = ∫_{t0}^{t_k} f (trapezoid or left rectangle over the intervals ``d``), C[0] = 0; f (T, ...)."""
+    dt = d.reshape((-1,) + (1,) * (f.ndim - 1))
     inc = 0.5 * (f[1:] + f[:-1]) * dt if rule == "trapezoid" else f[:-1] * dt
     return np.concatenate([np.zeros((1,) + f.shape[1:]), np.cumsum(inc, axis=0)], axis=0)
 
 
-def _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule):
+def _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule, max_gap=None):
     T = t.size
+    d = _intervals(t, max_gap)
     a, ok_a = _directions(ref_inertial, T, "ref_inertial")
     b, ok_b = _directions(inertial_meas, T, "inertial_meas")
     n1, n2 = a.shape[1], b.shape[1]
@@ -135,7 +149,7 @@ def _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule):
         c = np.einsum("tn,tni->ti", wc, np.cross(np.where(ok_g[:, None], g, 0.0)[:, None, :], br))
         step_ok = (ok_br[1:] & ok_br[:-1]).astype(float)
         D = np.concatenate([np.zeros((1, 3)), np.cumsum(np.einsum("tn,tni->ti", step_ok, br[1:] - br[:-1]), 0)], 0)
-    return _cumulative(S, t, rule), _cumulative(P, t, rule), _cumulative(A, t, rule), _cumulative(c, t, rule) + D
+    return _cumulative(S, d, rule), _cumulative(P, d, rule), _cumulative(A, d, rule), _cumulative(c, d, rule) + D
 
 
 def _measures(t, starts, ends, CS, CP, CA, Cc) -> Excitation:
@@ -169,6 +183,7 @@ def excitation(
     gains=None,
     stride: int = 1,
     rule: str = "trapezoid",
+    max_gap: Optional[float] = None,
 ) -> Excitation:
     """Persistent-excitation measures (Definition 4.1, Lemma 4.2, condition (13)) over sliding windows.
 
@@ -181,6 +196,7 @@ def excitation(
         ref_body: b̊_j, (T, n2, 3) or constant (n2, 3), body frame (needed when n2 > 0).
         gyr: (T, 3) angular velocity Omega (rad/s, body) (needed when n2 > 0).
         gains: (n1 + n2,) q of eq. (12) (k_i then l_j); default 1.
+        max_gap: a sample interval longer than this (s) contributes nothing (default 10 x the median interval).
     Returns:
         :class:`Excitation` over the W window start times.
     """
@@ -197,19 +213,27 @@ def excitation(
     keep = ends < t.size
     if not np.any(keep):
         raise ValueError(f"window {w} s is longer than the log ({t[-1] - t[0]} s)")
-    C = _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule)
+    C = _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule, max_gap)
     return _measures(t, starts[keep], ends[keep], *C)
 
 
 def sufficient_excitation(
-    t, *, ref_inertial=None, inertial_meas=None, ref_body=None, gyr=None, gains=None, rule: str = "trapezoid"
+    t,
+    *,
+    ref_inertial=None,
+    inertial_meas=None,
+    ref_body=None,
+    gyr=None,
+    gains=None,
+    rule: str = "trapezoid",
+    max_gap: Optional[float] = None,
 ) -> Excitation:
     """Sufficient-excitation measures (Definition 3.3 eq. (4), Lemma 3.4 eq. (5), condition (6)) over the
     growing windows [t_0, t_k], k = 1..T-1; same arguments as :func:`excitation`."""
     t = _time(t)
     _check_rule(rule)
     ends = np.arange(1, t.size)
-    C = _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule)
+    C = _integrands(t, ref_inertial, inertial_meas, ref_body, gyr, gains, rule, max_gap)
     return _measures(t, np.zeros_like(ends), ends, *C)
 
 
@@ -223,12 +247,14 @@ def excitation_from_samples(
     gyro_bias=None,
     stride: int = 1,
     rule: str = "trapezoid",
+    max_gap: Optional[float] = None,
 ) -> Excitation:
     """Excitation of a log: a stacked :class:`jaxatt.types.VectorSample` or
     :class:`jaxatt.types.ImuSample` (constant references ``params.ref_inertial`` in the order of
-    ``imu_fields``). References a VectorSample does not carry come from ``params``. ``window=None`` gives
+    ``imu_fields``; reference i counts only at the samples where reading ``imu_fields[i]`` is finite and
+    non-zero). References a VectorSample does not carry come from ``params``. ``window=None`` gives
     :func:`sufficient_excitation` (from the first sample); otherwise :func:`excitation`.
-    ``gains="params"`` uses params.k, params.l as the q of eq. (12).
+    ``gains="params"`` uses params.k, params.l as the q of eq. (12). ``max_gap``: see :func:`excitation`.
     """
     from .types import ImuSample, VectorSample
 
@@ -245,7 +271,19 @@ def excitation_from_samples(
         refs = np.asarray(params.ref_inertial, float)
         if refs.shape[0] != len(tuple(imu_fields)):
             raise ValueError(f"params.ref_inertial has {refs.shape[0]} rows but imu_fields is {tuple(imu_fields)}")
-        kw = dict(ref_inertial=refs)
+        fields = tuple(imu_fields)
+        if len(set(fields)) != len(fields) or not set(fields) <= {"acc", "mag"}:
+            raise ValueError(f"imu_fields must be distinct names among 'acc', 'mag', got {fields}")
+        valid = []
+        for name in fields:
+            reading = getattr(samples, name)
+            if reading is None:
+                raise ValueError(f"imu_fields names {name!r} but the samples have no {name} readings")
+            r = np.asarray(reading, float)
+            with np.errstate(invalid="ignore"):
+                valid.append(np.all(np.isfinite(r), axis=-1) & (np.linalg.norm(np.nan_to_num(r), axis=-1) > 0))
+        valid = np.stack(valid, axis=1)  # (T, n)
+        kw = dict(ref_inertial=np.where(valid[..., None], refs[None], np.nan))
     elif isinstance(samples, VectorSample):
 
         def ref(meas, carried, name):
@@ -267,8 +305,8 @@ def excitation_from_samples(
     else:
         raise ValueError(f"samples must be a VectorSample or ImuSample, got {type(samples).__name__}")
     if window is None:
-        return sufficient_excitation(samples.t, gains=gains, rule=rule, **kw)
-    return excitation(samples.t, window=window, gains=gains, stride=stride, rule=rule, **kw)
+        return sufficient_excitation(samples.t, gains=gains, rule=rule, max_gap=max_gap, **kw)
+    return excitation(samples.t, window=window, gains=gains, stride=stride, rule=rule, max_gap=max_gap, **kw)
 
 
 def excitation_of_scenario(

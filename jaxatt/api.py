@@ -127,6 +127,8 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
             from .fitting import gainsfile
 
             params = gainsfile.read_params(params, entry, dtype=dtype)
+        elif isinstance(params, dict):
+            params = _override(entry.params(dtype=dtype), params, entry.name)
         if entry.check is not None:
             _check_concrete(entry.check, params)
         return obs, params, entry, entry.name
@@ -150,6 +152,16 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
     )
 
 
+def _override(base, gains: dict, name: str):
+    """``base`` (a Params NamedTuple) with the fields named in ``gains`` replaced (ValueError for other names)."""
+    unknown = sorted(set(gains) - set(base._fields))
+    if unknown:
+        raise ValueError(
+            f"params of {name}: no field {', '.join(map(repr, unknown))}; fields: {', '.join(base._fields)}"
+        )
+    return base._replace(**{k: np.asarray(v, dtype=np.result_type(getattr(base, k))) for k, v in gains.items()})
+
+
 def _check_concrete(check, params):
     try:
         leaves = jax.tree_util.tree_leaves(params)
@@ -158,13 +170,6 @@ def _check_concrete(check, params):
         concrete = False
     if concrete:
         check(params)
-
-
-def _check_finite_params(params, name: str):
-    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        a = np.asarray(leaf)
-        if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
-            raise ValueError(f"params of {name}: {jax.tree_util.keystr(path)} is not finite ({a})")
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -235,7 +240,8 @@ def filter(
             reading; acc / mag may be None when the observer does not need them.
         dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing.
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
-            read); required for your own observer.
+            read; a dict such as ``{"beta": 0.05}`` replaces those fields of the defaults); required for your own
+            observer.
         frame: navigation frame of the returned quaternions ("ENU", "NED", "NWU"): registered observers are
             converted to it; for your own observer it only labels the estimate (no conversion).
         hold: the input of each step (:data:`jaxatt.types.HOLDS`; default the observer's, "next" for your own:
@@ -258,7 +264,7 @@ def filter(
         missing = [f for f in entry.needs if {"acc": acc_a, "mag": mag_a}[f] is None]
         if missing:
             raise ValueError(f"observer {name!r} needs {' and '.join(missing)} (arrays of shape (T, 3))")
-    _check_finite_params(p, name)
+    engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     cast = lambda a: None if a is None else jnp.asarray(a, dt_)  # noqa: E731
     samples = ImuSample(jnp.asarray(ts, dt_), cast(gyr_a), cast(acc_a), cast(mag_a))
@@ -273,11 +279,13 @@ def filter(
     )
     out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
     q = np.asarray(engine.estimate_q(out))
-    bad = ~np.all(np.isfinite(q), axis=-1)
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.linalg.norm(q, axis=-1) > 1e-6)  # NaN / inf, or a quaternion collapsed to zero
     if bad.any():
         k = int(np.argmax(bad))
         raise FloatingPointError(
-            f"{name}: the estimate is not finite from sample {k} (t = {ts[k]:.6g} s) on; check the inputs and gains"
+            f"{name}: the estimate is first non-finite (or a zero quaternion) at sample {k} (t = {ts[k]:.6g} s), "
+            f"{int(bad.sum())} of {len(bad)} estimates; check the inputs and gains"
         )
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
@@ -344,7 +352,8 @@ def broad_score(
     Args:
         observer: a registered name (set up from each trial's first samples) or your own Observer (its estimate
             must be sensor-to-ENU, BROAD's frame).
-        params: gains; None for a registered observer's shipped or default gains; a gains-file path is read.
+        params: gains; None for a registered observer's shipped or default gains; a gains-file path is read; a
+            dict replaces those fields of the defaults.
         trials: :class:`jaxatt.data.broad.Trial` s (:func:`jaxatt.data.broad.load`).
         hold: as in :func:`filter`.
         dtype: the filter's arithmetic ("float32" is the fast choice; default from the data).
@@ -360,7 +369,7 @@ def broad_score(
         raise ValueError("trials must be jaxatt.data.broad.Trial objects (jaxatt.data.broad.load)")
     dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
-    _check_finite_params(p, name)
+    engine.check_finite_params(p, name)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
@@ -453,7 +462,7 @@ def monte_carlo(
 
     dt_ = compute_dtype(dtype=dtype) if dtype is not None else np.dtype(jnp.result_type(float))
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
-    _check_finite_params(p, name)
+    engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     scn = scenario if scenario is not None else ahrs_scenario()
     ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)

@@ -134,6 +134,11 @@ def _run_flags(p: argparse.ArgumentParser):
         action="store_true",
         help="run only the runs not yet saved beside --json (<json>.runs.npz) by an interrupted run of the same flags",
     )
+    _output_flags(p)
+
+
+def _output_flags(p: argparse.ArgumentParser):
+    """--quiet / --progress: progress lines on stderr (default: only when stderr is a terminal)."""
     out = p.add_mutually_exclusive_group()
     out.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     out.add_argument("--progress", action="store_true", help="progress lines even when stderr is not a terminal")
@@ -170,6 +175,7 @@ def _parser() -> argparse.ArgumentParser:
     fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
     fp.add_argument("--out", required=True, help="CSV of t, qw, qx, qy, qz and the observer's flags")
+    _output_flags(fp)
 
     rp = sub.add_parser("reproduce", help="run a paper's simulation study and compare with its published numbers")
     rp.add_argument("experiment", choices=PAPER_STUDIES)
@@ -233,7 +239,7 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
     tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    tp.add_argument("--quiet", action="store_true")
+    _output_flags(tp)
 
     vp = sub.add_parser("evaluate", help="Monte Carlo of a study with a gains file (same JSON as reproduce)")
     vp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
@@ -251,6 +257,7 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("--trials", nargs="*", default=None, help="trial names, numbers, groups or fold1/fold2")
     bp.add_argument("--json", default=None)
     bp.add_argument("--float32", action="store_true")
+    _output_flags(bp)
 
     bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials")
     bt.add_argument("--data-dir", required=True)
@@ -263,7 +270,7 @@ def _parser() -> argparse.ArgumentParser:
     bt.add_argument("--out", default="gains.json")
     bt.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    bt.add_argument("--quiet", action="store_true")
+    _output_flags(bt)
 
     ep = sub.add_parser(
         "excitation",
@@ -526,9 +533,9 @@ def _tune(args) -> int:
         refine_schedule=args.refine_schedule,
         resume=args.resume,
         overwrite=args.overwrite,
-        quiet=args.quiet,
+        quiet=not _progress(args),
     )
-    print(f"gains written to {args.out} ({res.status})")
+    print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)
 
 
@@ -611,9 +618,12 @@ def _broad(args) -> int:
     from .data import broad
 
     io.check_output_path(args.json, "--json")
+    from .progress import Heartbeat
+
     trials = broad.load(args.data_dir, args.trials)
     dtype = "float32" if args.float32 else "float64"
-    score = api.broad_score(args.observer, args.gains, trials, dtype=dtype)
+    with Heartbeat(f"running {args.observer} on {len(trials)} trials", bool(_progress(args))):
+        score = api.broad_score(args.observer, args.gains, trials, dtype=dtype)
     shipped = getattr(api.registry.get(args.observer), "shipped", None) if args.observer in api.registry.INDEX else None
     source = args.gains or (f"shipped gains {shipped}" if shipped else "default gains")
     _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
@@ -658,10 +668,10 @@ def _broad_tune(args) -> int:
         out=args.out,
         resume=args.resume,
         overwrite=args.overwrite,
-        quiet=args.quiet,
+        quiet=not _progress(args),
         dtype="float64" if args.float64 else "float32",
     )
-    print(f"gains written to {args.out} ({res.status})")
+    print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)
 
 
@@ -716,19 +726,22 @@ def _filter(args) -> int:
         if args.params:
             raise UserError("--params applies to your own observer (module:attr); use --gains for a registered one")
         observer, params = args.observer, args.gains
+    from .progress import Heartbeat
+
     samples, rate = _load_any_log(args.log)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
-    est = api.filter(
-        observer,
-        samples.gyr,
-        samples.acc,
-        samples.mag,
-        dt=dt,
-        t=None if dt is not None else samples.t,
-        params=params,
-        frame=args.frame,
-        dtype="float32" if args.float32 else None,
-    )
+    with Heartbeat(f"filtering {len(samples.t)} samples", bool(_progress(args))):
+        est = api.filter(
+            observer,
+            samples.gyr,
+            samples.acc,
+            samples.mag,
+            dt=dt,
+            t=None if dt is not None else samples.t,
+            params=params,
+            frame=args.frame,
+            dtype="float32" if args.float32 else None,
+        )
     cols, names = [est.t, est.quat[:, 0], est.quat[:, 1], est.quat[:, 2], est.quat[:, 3]], ["t", "qw", "qx", "qy", "qz"]
     for k, v in est.outputs.items():
         if k in ("t", "q", "r"):
@@ -784,6 +797,18 @@ def _excitation(args) -> int:
         p = comp.default_params(len(refs_), 0, ref_inertial=np.stack(refs_))
         res = analysis.excitation_from_samples(samples, window=args.window, params=p, imu_fields=fields)
         source = f"log {args.log} ({', '.join(fields)}; references in {args.frame})"
+        for f in fields:
+            r = np.asarray(getattr(samples, f), float)
+            with np.errstate(invalid="ignore"):
+                ok = np.all(np.isfinite(r), axis=-1) & (np.linalg.norm(np.nan_to_num(r), axis=-1) > 0)
+            print(f"{f}: {100 * ok.mean():.1f} % of the samples are valid readings (finite, non-zero); only they count")
+        d = np.diff(np.asarray(samples.t, float))
+        gaps = d > 10 * np.median(d)
+        if gaps.any():
+            print(
+                f"{gaps.sum()} gaps in the timestamps longer than {10 * np.median(d):.3g} s "
+                f"({d[gaps].sum():.6g} s in all) count as no data"
+            )
     T = args.window
     lam = np.asarray(res.lambda2) / T
     bad = lam < args.threshold

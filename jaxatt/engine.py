@@ -36,6 +36,7 @@ from typing import Any, Callable, NamedTuple, Optional, Union
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import so3
 from .sim import imu
@@ -71,6 +72,17 @@ def check_hold(hold: str) -> str:
     if hold not in HOLDS:
         raise ValueError(f"hold must be one of {', '.join(HOLDS)}, got {hold!r}")
     return hold
+
+
+def check_finite_params(params, name: str = "observer") -> None:
+    """ValueError naming the first non-finite floating leaf of ``params`` (skipped for traced params, whose values
+    are not known here: under ``jax.grad`` a non-finite loss is the fitter's to report)."""
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if isinstance(leaf, jax.core.Tracer):
+            return
+        a = np.asarray(leaf)
+        if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+            raise ValueError(f"params of {name}: {jax.tree_util.keystr(path)} is not finite ({a})")
 
 
 def cast_floats(tree, dtype):

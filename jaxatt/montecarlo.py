@@ -126,6 +126,7 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     """
     _check_samples(samples)
     engine.check_hold(hold)
+    engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
     if dt is None:
@@ -426,6 +427,7 @@ def monte_carlo(
     """
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
+    engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
     mesh = _sharding.seed_mesh(devices)

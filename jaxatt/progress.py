@@ -16,12 +16,13 @@ optimizer step (its ``callback``).
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from typing import Callable, Optional, Union
 
 import numpy as np
 
-__all__ = ["TextProgress", "make_reporter", "steps_hook", "active"]
+__all__ = ["TextProgress", "Heartbeat", "make_reporter", "steps_hook", "active"]
 
 #: The reporting call in progress (module level: XLA runs host callbacks on its own threads).
 _CURRENT: list = [None]
@@ -50,6 +51,40 @@ class TextProgress:
             f"{rate:.3g} run-steps/s  {left:.0f} s left   " + ("\n" if final else "")
         )
         self.file.flush()
+
+
+class Heartbeat:
+    """Context manager: while a long call without in-scan reports runs (compiling, a BROAD batch, a long log),
+    rewrite one line ``label: N s`` on ``file`` (default stderr) every ``every_s`` seconds; nothing when
+    ``enabled`` is false. The line is ended when the block exits."""
+
+    def __init__(self, label: str, enabled: bool = True, every_s: float = 2.0, file=None):
+        self.label, self.enabled, self.every_s = label, bool(enabled), every_s
+        self.file = file if file is not None else sys.stderr
+        self._stop = threading.Event()
+        self._wrote = False
+
+    def _beat(self):
+        t0 = time.perf_counter()
+        while not self._stop.wait(self.every_s):
+            self.file.write(f"\r{self.label}: {time.perf_counter() - t0:.0f} s ")
+            self.file.flush()
+            self._wrote = True
+
+    def __enter__(self):
+        if self.enabled:
+            self._thread = threading.Thread(target=self._beat, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self._stop.set()
+            self._thread.join()
+            if self._wrote:
+                self.file.write("\n")
+                self.file.flush()
+        return False
 
 
 def make_reporter(progress: Union[None, bool, Callable], label: str = "monte carlo") -> Optional[Callable]:

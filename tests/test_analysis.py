@@ -205,7 +205,8 @@ def test_from_samples():
     field = np.array([2.6338e4, 0.0851e4, 3.6359e4])
     p = C.imu_params(mag_ref=field, frame="NED")
     t = np.linspace(0.0, 10.0, 101)
-    imu = ImuSample(t, np.zeros((101, 3)), acc=np.zeros((101, 3)), mag=np.zeros((101, 3)))
+    readings = np.tile([0.1, 0.2, 9.8], (101, 1))  # any valid readings: only the references' directions count
+    imu = ImuSample(t, np.zeros((101, 3)), acc=readings, mag=readings)
     ex = A.excitation_from_samples(imu, window=2.0, params=p)
     c = abs(field @ np.array(C.UP_NED)) / np.linalg.norm(field)
     np.testing.assert_allclose(ex.lambda2 / 2.0, 1.0 - c, rtol=1e-9)
@@ -223,6 +224,47 @@ def test_from_samples():
         np.testing.assert_allclose(x, y, atol=1e-12)
     with pytest.raises(ValueError, match="params"):
         A.excitation_from_samples(samples._replace(ref_inertial=None), window=1.0)
+
+
+def test_log_references_count_only_where_their_readings_are_valid():
+    """A constant reference contributes only at samples where its sensor gave a finite, non-zero reading: with
+    acc invalid (NaN, then zero) in the second half, windows there see the magnetic reference alone (rank 1,
+    lambda2 = 0) while windows of the first half keep the two-reference value 1 - c."""
+    field = np.array([2.6338e4, 0.0851e4, 3.6359e4])
+    p = C.imu_params(mag_ref=field, frame="NED")
+    c = abs(field @ np.array(C.UP_NED)) / np.linalg.norm(field)
+    t = np.linspace(0.0, 20.0, 2001)
+    acc = np.tile([0.0, 0.0, -9.8], (t.size, 1))
+    acc[1000:1500] = np.nan
+    acc[1500:] = 0.0
+    mag = np.tile(field, (t.size, 1))
+    ex = A.excitation_from_samples(ImuSample(t, np.zeros_like(acc), acc=acc, mag=mag), window=2.0, params=p)
+    first = ex.t_end <= 10.0 - 1e-9
+    second = ex.t_start >= 10.0
+    np.testing.assert_allclose(ex.lambda2[first] / 2.0, 1.0 - c, rtol=1e-9)
+    np.testing.assert_allclose(ex.lambda2[second], 0.0, atol=1e-12)
+    dead = ImuSample(t, np.zeros_like(acc), acc=np.full_like(acc, np.nan), mag=np.zeros_like(mag))
+    assert np.all(A.excitation_from_samples(dead, window=2.0, params=p).lambda2 == 0.0)
+    with pytest.raises(ValueError, match="imu_fields"):
+        A.excitation_from_samples(ImuSample(t, acc, acc=acc, mag=None), window=2.0, params=p)
+
+
+def test_gaps_in_the_timestamps_count_as_no_data():
+    """A 1e6-s gap adds nothing to the integrals: no window's lambda2 exceeds its covered time x 2 (two unit
+    references), and a window across the gap holds only the data on either side."""
+    a = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    t = np.arange(2000) * 0.01
+    t[1000:] += 1e6
+    ex = A.excitation(t, window=2.0, ref_inertial=a)
+    assert np.max(ex.lambda2) <= 2.0 * 1.0 + 1e-9  # lambda2 of I_2 over 2 s of data is 2 (one per reference)
+    across = (ex.t_start < t[999]) & (ex.t_end >= t[1000])
+    assert across.sum() > 100
+    covered = (t[999] - ex.t_start[across]) + (ex.t_end[across] - t[1000])
+    np.testing.assert_allclose(ex.lambda2[across], covered, atol=1e-9)
+    with pytest.raises(ValueError, match="max_gap"):
+        A.excitation(t, window=2.0, ref_inertial=a, max_gap=-1.0)
+    # a larger max_gap takes the gap as data again (what the trapezoid rule did before)
+    assert np.max(A.excitation(t, window=2.0, ref_inertial=a, max_gap=2e6).lambda2) > 1e5
 
 
 def test_plot_excitation(tmp_path):

@@ -14,14 +14,17 @@ interval; bounded gains are projected back into their bounds after each step.
 Resuming: ``fit(..., out=path, resume=True)`` continues from the state saved in ``path`` (same settings; the data
 order, optimizer state and best-so-far are restored, so the result equals an uninterrupted run to rounding; with a
 larger ``steps`` a finished fit continues). A finished gains file is never replaced by a new fit unless
-``overwrite=True``.
+``overwrite=True``, and then only once the new fit has finished: until then it saves itself in
+``<out>.partial.json`` (:func:`partial_path`), which ``resume=True`` continues.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
+from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence
 
 import jax
@@ -35,6 +38,8 @@ from . import parametrize as P
 __all__ = [
     "fit",
     "FitResult",
+    "partial_path",
+    "FINISHED",
     "optimize",
     "OptimizeResult",
     "Sampler",
@@ -468,17 +473,123 @@ def fit(
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
     if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
         raise ValueError(f"lr must be a positive number, got {lr!r}")
-    out_path = io.check_output_path(out, "out")
-    previous = None
-    if out_path is not None and out_path.exists():
-        previous = gainsfile.read(out_path)
-        if not resume and not overwrite:
-            raise ValueError(
-                f"out {out}: exists (status {previous.get('status')!r}); pass resume=True to continue it or "
-                "overwrite=True to replace it"
-            )
+    final_path = io.check_output_path(out, "out")
+    out_path, previous = final_path, None
+    if final_path is not None:
+        partial = partial_path(final_path)
+        if resume and partial.exists():  # an overwriting fit was interrupted: continue it
+            out_path, previous = partial, gainsfile.read(partial)
+        elif final_path.exists():
+            try:
+                previous = gainsfile.read(final_path)
+            except ValueError as e:
+                raise ValueError(f"out {out}: exists and is not a gains file, so it is not replaced ({e})") from None
+            if not resume and not overwrite:
+                raise ValueError(
+                    f"out {out}: exists (status {previous.get('status')!r}); pass resume=True (--resume) to continue "
+                    "it or overwrite=True (--overwrite) to replace it"
+                )
+            if not resume and previous.get("status") in FINISHED:
+                out_path = partial  # the finished fit stays in out until the new one finishes
     if resume and previous is None:
         raise ValueError(f"resume: no gains file at {out!r} to continue")
+    res = _fit(
+        observer,
+        params,
+        data,
+        out_path=out_path,
+        previous=previous if resume else None,
+        steps=steps,
+        lr=lr,
+        tune=tune,
+        freeze=freeze,
+        masks=masks,
+        method=method,
+        transforms=transforms,
+        start=start,
+        batch=batch,
+        val=val,
+        val_every=val_every,
+        patience=patience,
+        clip=clip,
+        schedule=schedule,
+        seed=seed,
+        callback=callback,
+        quiet=quiet,
+        dtype=dtype,
+        hold=hold,
+        loss=loss,
+        transient_weight=transient_weight,
+        config=config,
+        train_runs=train_runs,
+        val_runs=val_runs,
+        refine_schedule=refine_schedule,
+        checkpoint=checkpoint,
+        step_remat=step_remat,
+        devices=devices,
+    )
+    if out_path is not None and out_path != final_path and res.status in FINISHED:
+        os.replace(out_path, final_path)
+        res = res._replace(path=str(final_path))
+        if not quiet:
+            print(f"{final_path} replaced by the finished new fit", file=sys.stderr, flush=True)
+    elif out_path is not None and out_path != final_path and not quiet:
+        print(
+            f"the finished fit in {final_path} is kept; the new one ({res.status}) is in {out_path} "
+            "(resume=True / --resume continues it)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return res
+
+
+#: statuses of a finished fit (a gains file with one of them is replaced only by another finished fit)
+FINISHED = ("done", "early-stopped")
+
+
+def partial_path(out) -> Path:
+    """Where a fit that overwrites a finished gains file ``out`` saves itself until it finishes."""
+    out = Path(out)
+    return out.with_name(out.name + ".partial.json")
+
+
+def _fit(
+    observer,
+    params,
+    data,
+    *,
+    out_path,
+    previous,
+    steps,
+    lr,
+    tune,
+    freeze,
+    masks,
+    method,
+    transforms,
+    start,
+    batch,
+    val,
+    val_every,
+    patience,
+    clip,
+    schedule,
+    seed,
+    callback,
+    quiet,
+    dtype,
+    hold,
+    loss,
+    transient_weight,
+    config,
+    train_runs,
+    val_runs,
+    refine_schedule,
+    checkpoint,
+    step_remat,
+    devices,
+):
+    """:func:`fit` once the gains file to write (``out_path``) and the fit to continue (``previous``) are known."""
     if isinstance(data, (str,)) or (data is not None and hasattr(data, "setup") and hasattr(data, "observers")):
         return _fit_study(
             data,
@@ -499,7 +610,7 @@ def fit(
             schedule=schedule or "constant",
             seed=seed,
             out_path=out_path,
-            previous=previous if resume else None,
+            previous=previous,
             callback=callback,
             quiet=quiet,
             dtype=dtype,
@@ -579,7 +690,7 @@ def fit(
         val_every=val_every,
         patience=patience,
         out_path=out_path,
-        previous=previous if resume else None,
+        previous=previous,
         callback=callback,
         quiet=quiet,
         study=None,
