@@ -338,7 +338,9 @@ def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
 
     out = {}
     for g in GROUPS + ("all",):
-        rows = [s for s in per_trial.values() if g == "all" or s.group == g]
+        rows = [
+            s for s in per_trial.values() if (g == "all" or s.group == g) and np.isfinite(s.total_rmse_deg)
+        ]  # trials without ground truth (NaN) are not in the means
         if rows:
             out[g] = GroupScore(*(float(np.mean([getattr(r, m) for r in rows])) for m in METRICS), len(rows))
     return out
@@ -358,7 +360,9 @@ def broad_score(
         hold: as in :func:`filter`.
         dtype: the filter's arithmetic ("float32" is the fast choice; default from the data).
     Returns :class:`BroadScore`. Estimate k is scored against ``opt_quat[k]`` over the movement samples with
-    finite truth (BROAD's metric, no offset fitted).
+    finite truth (BROAD's metric, no offset fitted). A trial with no such sample has NaN metrics (no ground truth:
+    nothing to score) and is left out of the group means; FloatingPointError when a scored trial's metric is not
+    finite (the estimate diverged).
     """
     from .data import broad as B
 
@@ -379,7 +383,9 @@ def broad_score(
     per = {}
     for tr in trials:
         m = res[tr.name]
-        if not all(np.isfinite(v) for v in m.values()):
+        if not np.any(B.scored_samples(tr)):  # documented: no ground truth to score against -> NaN, not in the means
+            m = {k: float("nan") for k in m}
+        elif not all(np.isfinite(v) for v in m.values()):
             raise FloatingPointError(
                 f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); the estimate "
                 "diverged (check the gains)"

@@ -13,6 +13,7 @@ import argparse
 import os
 import signal
 import sys
+import threading
 from typing import List, Optional
 
 import numpy as np
@@ -298,6 +299,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     ep.add_argument("--json", default=None, help="write the measures per window here")
     ep.add_argument("--plot", default=None, help="write a PNG of the measures over time here")
+    for command in sub.choices.values():  # --debug after the command too (it keeps the top level's default)
+        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     return ap
 
 
@@ -601,6 +604,12 @@ def _broad_table(title: str, score) -> None:
     print(f"{'trial':48s} {'group':11s} {'total':>7s} {'heading':>8s} {'incl':>7s}")
     for n, v in score.trials.items():
         print(f"{n:48s} {v.group:11s} {v.total_rmse_deg:7.2f} {v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}")
+    unscored = [n for n, v in score.trials.items() if not np.isfinite(v.total_rmse_deg)]
+    if unscored:
+        print(
+            f"nan: {', '.join(unscored)} {'has' if len(unscored) == 1 else 'have'} no ground truth in the movement "
+            "samples (nothing to score; not in the means)"
+        )
     for g, v in score.groups.items():
         print(
             f"{'mean ' + g + ' (' + str(v.n_trials) + ' trials)':60s} {v.total_rmse_deg:7.2f} "
@@ -866,13 +875,33 @@ _COMMANDS = {
 
 
 _INTERRUPTED = []
+_DEFERRED = []
+#: functions in which an exception is swallowed ("Exception ignored in ..."): a Ctrl-C landing there is re-sent
+_SWALLOWING = {"__del__", "_xla_gc_callback"}
+
+
+def _in_swallowing_call(frame) -> bool:
+    while frame is not None:
+        if frame.f_code.co_name in _SWALLOWING:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _on_sigint(signum, frame):
-    """Ctrl-C: remember it and raise KeyboardInterrupt where Python runs next (a second Ctrl-C leaves at once)."""
-    if _INTERRUPTED:
+    """Ctrl-C: remember it and raise KeyboardInterrupt where Python runs next (a second Ctrl-C leaves at once).
+
+    Inside a garbage-collector callback or ``__del__`` the exception would be printed and dropped, so the signal is
+    sent again 50 ms later instead."""
+    if _INTERRUPTED and not _DEFERRED:
         os._exit(130)
-    _INTERRUPTED.append(signum)
+    if not _INTERRUPTED:
+        _INTERRUPTED.append(signum)
+    if _in_swallowing_call(frame):
+        _DEFERRED.append(signum)
+        threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+        return
+    _DEFERRED.clear()
     raise KeyboardInterrupt
 
 

@@ -299,7 +299,7 @@ def simulate(
     first = lambda a: np.asarray(a)[0]  # noqa: E731
     scalar = lambda a: float(first(a)) if np.ndim(a) == 1 else first(a)  # noqa: E731
     return (
-        {k: scalar(v) for k, v in res.summary.items()},
+        {k: scalar(v) for k, v in res.summary.items() if k != FIRST_NONFINITE},
         jax.tree_util.tree_map(first, res.records) if res.records is not None else None,
         jax.tree_util.tree_map(lambda a: a[0], res.state),
     )

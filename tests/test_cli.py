@@ -173,44 +173,6 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
     assert table.dtype.names == ("t", "qw", "qx", "qy", "qz") and len(table) == len(samples.t)
 
 
-@pytest.mark.parametrize(
-    "argv, match",
-    [
-        (["filter", "--log", "/nonexistent/log.csv", "--out", "{tmp}/e.csv"], "not found|No such file|does not exist"),
-        (["filter", "--log", "{log}", "--out", "{tmp}"], "is a folder"),
-        (["filter", "--log", "{log}", "--observer", "nope", "--out", "{tmp}/e.csv"], "unknown observer"),
-        (["filter", "--log", "{log}", "--observer", "nomodule:X", "--out", "{tmp}/e.csv"], "cannot import"),
-        (["filter", "--log", "{log}", "--observer", "robust", "--params", "a:b", "--out", "{tmp}/e.csv"], "--params"),
-        (["filter", "--log", "{log}", "--gains", "{tmp}/missing.json", "--out", "{tmp}/e.csv"], "not found"),
-        (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--json", "{tmp}"], "is a folder"),
-        (["reproduce", "batista-ges", "--runs", "1", "--duration", "10", "--m-init", "rescaled"], "does not apply"),
-        (["reproduce", "nlio-case1", "--runs", "1", "--aggressive"], "does not apply"),
-        (["simulate", "--observer", "complementary", "--latitude", "45", "--runs", "1"], "does not apply"),
-        (["simulate", "--observer", "batista-ges", "--gain", "5", "--runs", "1"], "does not apply"),
-        (
-            ["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"],
-            "window_start",
-        ),
-        (["evaluate", "--experiment", "batista-so3", "--gains", "{tmp}/missing.json"], "not found"),
-        (["broad", "--data-dir", "/nonexistent"], "not found"),
-        (["tune", "--experiment", "batista-ges", "--out", "{tmp}", "--steps", "1"], "is a folder"),
-    ],
-)
-def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, match):
-    from jaxatt.data import logs
-
-    samples, _ = _sim_log(1.0)
-    log = tmp_path / "log.csv"
-    logs.save_log(log, samples)
-    argv = [a.format(tmp=tmp_path, log=log) for a in argv]
-    assert cli.main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("jaxatt: error:"), err
-    import re
-
-    assert re.search(match, err[0]), err[0]
-
-
 def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     gains = tmp_path / "g.json"
     # no step: the command's plumbing (the gradient through the scan is tested in test_tune.py)

@@ -62,6 +62,7 @@ __all__ = [
     "metric_fn",
     "metric_batch",
     "broad_errors",
+    "scored_samples",
     "error_angles_jax",
     "broad_errors_jax",
     "pad_trials",
@@ -323,6 +324,11 @@ def error_angles(quat_est, quat_true):
         heading = 2 * np.arctan(np.abs(d[..., 3] / d[..., 0]))
         incl = 2 * np.arccos(np.clip(np.sqrt(d[..., 0] ** 2 + d[..., 3] ** 2), 0, 1))
     return total, heading, incl
+
+
+def scored_samples(trial: Trial) -> np.ndarray:
+    """(N,) bool: the samples of a trial that the metric scores (movement and finite ground truth)."""
+    return np.asarray(trial.movement, bool) & np.all(np.isfinite(np.asarray(trial.quat_true)), axis=-1)
 
 
 def broad_errors(quat_est, quat_true, movement) -> Dict[str, float]:

@@ -1,0 +1,413 @@
+"""Boundaries that never lose work: every bad input is one clear line (CLI exit 2, no traceback) and leaves existing
+output files untouched; a non-finite result exits 1 saying where it appeared; Ctrl-C exits 130 keeping what was
+finished; a run killed outright is resumed with ``--resume`` to the same numbers as an uninterrupted run."""
+
+import json
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxatt
+from jaxatt import cli
+
+REPO = Path(__file__).parents[1]
+KEEP = b'{"complete": true, "precious": "an earlier result"}\n'
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Files: good and broken logs, gains files and HDF5 trials (made here: no ../shared needed)
+# ------------------------------------------------------------------------------------------------------------
+def _log_rows(n=1000, dt=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    gyr = rng.normal(0, 0.3, (n, 3))
+    acc = np.tile([0.0, 0.0, 9.81], (n, 1)) + rng.normal(0, 0.05, (n, 3))
+    mag = np.tile([20.0, 0.0, -40.0], (n, 1))
+    return t, gyr, acc, mag
+
+
+def _write_csv(path, t, gyr, acc, mag):
+    header = "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z"
+    np.savetxt(path, np.column_stack([t, gyr, acc, mag]), delimiter=",", header=header, comments="")
+
+
+def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True):
+    h5py = pytest.importorskip("h5py")
+    t, gyr, acc, mag = _log_rows(n)
+    with h5py.File(path, "w") as f:
+        for k, v in {
+            "imu_gyr": gyr,
+            "imu_acc": acc,
+            "imu_mag": mag,
+            "opt_quat": np.tile([1.0, 0, 0, 0] if truth else [np.nan] * 4, (n, 1)),
+            "movement": np.ones(n),
+        }.items():
+            if k not in drop:
+                f[k] = v
+        f.attrs["sampling_rate"] = rate
+    if truncate:
+        data = Path(path).read_bytes()
+        Path(path).write_bytes(data[: len(data) // 3])
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("boundaries")
+    t, gyr, acc, mag = _log_rows()
+    _write_csv(d / "log.csv", t, gyr, acc, mag)
+    _write_csv(d / "huge_gyr.csv", t, gyr * 1e300, acc, mag)
+    _write_csv(d / "backwards.csv", t[::-1], gyr, acc, mag)
+    (d / "no_header.csv").write_text("0,0,0,0\n0.01,0,0,0\n")
+    (d / "empty.csv").write_text("")
+    bad_inf = np.column_stack([t, gyr, acc, mag]).astype(object)
+    bad_inf[5, 1] = "inf"
+    (d / "inf.csv").write_text(
+        "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z\n" + "\n".join(",".join(map(str, r)) for r in bad_inf)
+    )
+    shipped = REPO / "jaxatt" / "data" / "gains"
+    robust = json.loads((shipped / "robust_broad_all.json").read_text())
+    for name, value in (("nan", float("nan")), ("negative", -1.0)):
+        g = json.loads(json.dumps(robust))
+        g["gains"]["tau_acc"]["value"] = value
+        (d / f"robust_{name}.json").write_text(json.dumps(g))
+    (d / "robust_ok.json").write_text(json.dumps(robust))
+    (d / "so3_study.json").write_text((shipped / "batista-so3.json").read_text())
+    (d / "broken.json").write_text('{"format": "jaxatt-gains/2", "observer": ')
+    (d / "not_gains.json").write_text('{"hello": 1}')
+    for name, kw in {
+        "ok": {},
+        "no_mag": {"drop": ("imu_mag",)},
+        "rate0": {"rate": 0.0},
+        "truncated": {"truncate": True},
+        "no_truth": {"truth": False},
+    }.items():
+        (d / f"trials_{name}").mkdir()
+        _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
+    (d / "trials_empty").mkdir()
+    (d / "folder").mkdir()
+    return d
+
+
+def _run(argv, files, capsys):
+    """cli.main in this process (argparse errors leave by SystemExit); returns (rc, stderr lines)."""
+    argv = [a.format(d=files) for a in argv]
+    try:
+        rc = cli.main(argv)
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err
+    return rc, [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("\r")]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Bad input on every command: exit 2, one line naming what is wrong, existing output untouched
+# ------------------------------------------------------------------------------------------------------------
+MC = ["--runs", "1", "--duration", "5", "--quiet"]
+BAD_INPUT = [
+    # top level
+    ([], r"the following arguments are required: command|invalid choice|command"),
+    (["frobnicate"], r"invalid choice: 'frobnicate'"),
+    # filter
+    (["filter", "--log", "{d}/missing.csv", "--out", "{d}/keep.csv"], r"--log .*missing\.csv: not found"),
+    (["filter", "--log", "{d}/folder", "--out", "{d}/keep.csv"], r"folder"),
+    (["filter", "--log", "{d}/log.csv", "--out", "{d}/folder"], r"--out .*folder: is a folder"),
+    (["filter", "--log", "{d}/log.csv", "--out", "/proc/est.csv"], r"--out /proc/est\.csv: cannot write"),
+    (["filter", "--log", "{d}/log.csv", "--observer", "nope", "--out", "{d}/keep.csv"], r"unknown observer 'nope'"),
+    (["filter", "--log", "{d}/log.csv", "--observer", "nomodule:X", "--out", "{d}/keep.csv"], r"cannot import"),
+    (["filter", "--log", "{d}/log.csv", "--params", "a:b", "--out", "{d}/keep.csv"], r"--params applies"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/missing.json", "--out", "{d}/keep.csv"], r"not found"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/broken.json", "--out", "{d}/keep.csv"], r"broken\.json"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/so3_study.json", "--out", "{d}/keep.csv"], r"so3_study"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/robust_nan.json", "--out", "{d}/keep.csv"], r"tau_acc"),
+    (["filter", "--log", "{d}/log.csv", "--dt", "0", "--out", "{d}/keep.csv"], r"argument --dt"),
+    (["filter", "--log", "{d}/log.csv", "--dt", "nan", "--out", "{d}/keep.csv"], r"argument --dt"),
+    (["filter", "--log", "{d}/log.csv", "--frame", "XYZ", "--out", "{d}/keep.csv"], r"argument --frame"),
+    (["filter", "--log", "{d}/no_header.csv", "--out", "{d}/keep.csv"], r"header"),
+    (["filter", "--log", "{d}/empty.csv", "--out", "{d}/keep.csv"], r"empty\.csv"),
+    (["filter", "--log", "{d}/inf.csv", "--out", "{d}/keep.csv"], r"inf"),
+    (["filter", "--log", "{d}/backwards.csv", "--out", "{d}/keep.csv"], r"increasing"),
+    (["filter", "--log", "{d}/trials_no_mag/01_no_mag.hdf5", "--out", "{d}/keep.csv"], r"imu_mag"),
+    (["filter", "--log", "{d}/trials_rate0/01_rate0.hdf5", "--out", "{d}/keep.csv"], r"sampling_rate"),
+    (["filter", "--log", "{d}/trials_truncated/01_truncated.hdf5", "--out", "{d}/keep.csv"], r"truncated|read"),
+    # reproduce / simulate
+    (["reproduce", "batista-ges", *MC, "--json", "{d}/folder"], r"--json .*folder: is a folder"),
+    (["reproduce", "batista-ges", *MC, "--json", "/proc/x.json"], r"--json /proc/x\.json: cannot write"),
+    (["reproduce", "batista-ges", *MC, "--plot", "/proc/x.png", "--json", "{d}/keep.json"], r"--plot /proc"),
+    (["reproduce", "batista-ges", "--runs", "0"], r"argument --runs"),
+    (["reproduce", "batista-ges", "--runs", "many"], r"argument --runs"),
+    (["reproduce", "batista-ges", "--duration", "-5"], r"argument --duration"),
+    (["reproduce", "batista-ges", *MC, "--m-init", "rescaled", "--json", "{d}/keep.json"], r"does not apply"),
+    (["reproduce", "nlio-case1", *MC, "--aggressive", "--json", "{d}/keep.json"], r"does not apply"),
+    (["reproduce", "batista-so3", *MC, "--resume"], r"--resume needs --json"),
+    (["reproduce", "batista-so3", "--quiet", "--progress"], r"not allowed with argument"),
+    (["simulate", "--observer", "complementary", "--latitude", "45", *MC], r"--latitude.*does not apply"),
+    (["simulate", "--observer", "batista-ges", "--gain", "5", *MC], r"--gain.*does not apply"),
+    (["simulate", "--observer", "batista-so3", "--x2-0", "1,2,3", *MC], r"does not apply"),
+    (["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"], r"window"),
+    (["simulate", "--observer", "batista-ges", "--latitude", "95", *MC], r"argument --latitude"),
+    # tune / evaluate
+    (["tune", "--experiment", "batista-so3", "--out", "{d}/folder", "--steps", "1"], r"--out .*folder: is a folder"),
+    (["tune", "--experiment", "batista-so3", "--out", "/proc/g.json", "--steps", "1"], r"--out /proc/g\.json"),
+    (["tune", "--experiment", "batista-so3", "--steps", "-1"], r"argument --steps"),
+    (["tune", "--experiment", "batista-so3", "--refine-schedule", "-5"], r"argument --refine-schedule"),
+    (["tune", "--experiment", "batista-so3", "--lr", "0"], r"argument --lr"),
+    (["tune", "--experiment", "nope"], r"argument --experiment"),
+    (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/keep.json"], r"not a gains file"),
+    (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/absent.json", "--resume"], r"no gains"),
+    (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/missing.json", "--json", "{d}/keep.json"], r"found"),
+    (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/broken.json", "--json", "{d}/keep.json"], r"broken"),
+    (
+        ["evaluate", "--experiment", "batista-so3", "--gains", "{d}/robust_ok.json", "--json", "{d}/keep.json"],
+        r"robust",
+    ),
+    (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/not_gains.json", "--json", "{d}/keep.json"], r"gains"),
+    (["evaluate", "--experiment", "batista-so3", "--json", "/proc/e.json"], r"--json /proc/e\.json"),
+    # broad / broad-tune
+    (["broad", "--data-dir", "{d}/nowhere"], r"nowhere.*not found|not found.*nowhere"),
+    (["broad", "--data-dir", "{d}/trials_empty"], r"trials_empty"),
+    (["broad", "--data-dir", "{d}/trials_no_mag"], r"imu_mag"),
+    (["broad", "--data-dir", "{d}/trials_rate0"], r"sampling_rate"),
+    (["broad", "--data-dir", "{d}/trials_truncated"], r"truncated|read"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--trials", "99_nope"], r"99_nope"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/robust_nan.json"], r"tau_acc"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/robust_negative.json"], r"tau_acc"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/broken.json"], r"broken\.json"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/so3_study.json"], r"batista-so3|so3_study"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/missing.json"], r"missing\.json"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--json", "/proc/b.json"], r"--json /proc/b\.json"),
+    (["broad-tune", "--data-dir", "{d}/trials_ok", "--steps", "-1"], r"argument --steps"),
+    (["broad-tune", "--data-dir", "{d}/trials_ok", "--out", "/proc/g.json"], r"--out /proc/g\.json"),
+    (["broad-tune", "--data-dir", "{d}/trials_empty", "--out", "{d}/g.json"], r"trials_empty"),
+    (
+        ["broad-tune", "--data-dir", "{d}/trials_ok", "--init-gains", "{d}/broken.json", "--out", "{d}/g.json"],
+        r"broken",
+    ),
+    # excitation
+    (["excitation", "--log", "{d}/missing.csv"], r"--log .*missing\.csv: not found"),
+    (["excitation", "--log", "{d}/log.csv"], r"--mag-ref"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "1,2"], r"argument --mag-ref"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "20,0,-40", "--window", "0"], r"argument --window"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "20,0,-40", "--window", "500"], r"longer than the log"),
+    (["excitation", "--scenario", "rotating", "--json", "/proc/x.json"], r"--json /proc/x\.json"),
+    (["excitation", "--scenario", "rotating", "--plot", "{d}/folder"], r"--plot .*folder"),
+    (["excitation", "--scenario", "nope"], r"argument --scenario"),
+]
+
+
+@pytest.mark.parametrize("argv, match", BAD_INPUT, ids=[" ".join(a[:4]) for a, _ in BAD_INPUT])
+def test_bad_input_is_one_line_exit_2_and_touches_no_output(files, capsys, argv, match):
+    for name in ("keep.json", "keep.csv"):
+        (files / name).write_bytes(KEEP)
+    before = sorted(p.name for p in files.iterdir())
+    rc, err = _run(argv, files, capsys)
+    assert rc == 2, (rc, err)
+    assert len(err) == 1, err
+    assert re.search(match, err[0]), err[0]
+    assert "Traceback" not in err[0]
+    for name in ("keep.json", "keep.csv"):
+        assert (files / name).read_bytes() == KEEP, f"{name} was changed"
+    assert sorted(p.name for p in files.iterdir()) == before, "a file was left behind"
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Non-finite results: exit 1 naming where they first appeared
+# ------------------------------------------------------------------------------------------------------------
+NON_FINITE = [
+    (
+        ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "3", "--quiet", "--rate-scale", "1e6"],
+        r"run 0.*t = ",
+    ),
+    (
+        ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "3", "--quiet", "--noise-scale", "1e30"],
+        r"run 0.*t = ",
+    ),
+    (["filter", "--log", "{d}/huge_gyr.csv", "--observer", "madgwick", "--out", "{d}/est.csv"], r"sample \d+ \(t = "),
+    (["filter", "--log", "{d}/huge_gyr.csv", "--observer", "robust", "--out", "{d}/est.csv"], r"sample \d+ \(t = "),
+]
+
+
+@pytest.mark.parametrize("argv, match", NON_FINITE, ids=[" ".join(a[:3]) + " " + a[-2] for a, _ in NON_FINITE])
+def test_non_finite_result_exits_1_saying_where(files, capsys, argv, match):
+    rc, err = _run(argv, files, capsys)
+    assert rc == 1, (rc, err)
+    assert len(err) == 1 and err[0].startswith("jaxatt: error: non-finite result"), err
+    assert re.search(match, err[0]), err[0]
+
+
+def test_broad_trial_without_ground_truth_is_said_not_failed(files, capsys):
+    """NaN ground truth is BROAD's documented 'no reference here': a trial with none is NaN, said, and left out of
+    the means (exit 0); a trial with truth is scored."""
+    rc = cli.main(
+        [
+            "broad",
+            "--data-dir",
+            str(files / "trials_no_truth"),
+            "--observer",
+            "madgwick",
+            "--json",
+            str(files / "b.json"),
+        ]
+    )
+    assert rc == 0
+    assert "01_no_truth has no ground truth" in capsys.readouterr().out
+    d = json.loads((files / "b.json").read_text())
+    assert np.isnan(d["trials"]["01_no_truth"]["total_rmse_deg"]) and d["groups"] == {}
+    (files / "b.json").unlink()
+    trials = jaxatt.data.broad.load(files / "trials_no_truth") + jaxatt.data.broad.load(files / "trials_ok")
+    score = jaxatt.broad_score("madgwick", None, trials)
+    assert np.isnan(score.trials["01_no_truth"].total_rmse_deg)
+    assert np.isfinite(score.trials["01_ok"].total_rmse_deg) and score.groups["all"].n_trials == 1
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The public API: one-line ValueError naming the argument
+# ------------------------------------------------------------------------------------------------------------
+def _imu(n=100):
+    t, gyr, acc, mag = _log_rows(n)
+    return gyr, acc, mag
+
+
+API_BAD = [
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=float("nan")), r"dt must be a finite positive"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.0), r"dt must be a finite positive"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=-0.01), r"dt must be a finite positive"),
+    (lambda g, a, m: jaxatt.filter("madgwick", [0.0, 0.0, 0.0], a, m, dt=0.01), r"gyr must have shape \(T, 3\)"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g[:10], a, m, dt=0.01), r"acc has 100 samples, gyr has 10"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"beta": np.nan}), r"beta"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"gamma": 1.0}), r"no field 'gamma'"),
+    (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params="/nonexistent.json"), r"nonexistent"),
+    (lambda g, a, m: jaxatt.monte_carlo("madgwick", {"beta": np.nan}, runs=1, duration=1.0), r"beta"),
+    (lambda g, a, m: jaxatt.monte_carlo("madgwick", runs=0, duration=1.0), r"runs must be >= 1"),
+    (lambda g, a, m: jaxatt.fit("madgwick", None, "nonsense"), r"unknown study 'nonsense'"),
+    (lambda g, a, m: jaxatt.fit("madgwick", None, [1, 2]), r"Trial"),
+    (lambda g, a, m: jaxatt.broad_score("madgwick", None, "/nonexistent"), r"Trial"),
+]
+
+
+@pytest.mark.parametrize("call, match", API_BAD)
+def test_public_api_bad_input_is_one_line(call, match):
+    with pytest.raises(ValueError, match=match) as e:
+        call(*_imu())
+    assert "\n" not in str(e.value)
+
+
+def test_api_takes_lists_and_partial_gains():
+    g, a, m = _imu()
+    ref = jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"beta": 0.2})
+    lists = jaxatt.filter("madgwick", g.tolist(), a.tolist(), m.tolist(), dt=0.01, params={"beta": 0.2})
+    np.testing.assert_array_equal(lists.quat, ref.quat)
+    default = jaxatt.filter("madgwick", g, a, m, dt=0.01)
+    assert not np.allclose(default.quat, ref.quat)  # the dict's beta was used
+
+
+def test_montecarlo_run_refuses_non_finite_params():
+    from jaxatt import montecarlo
+    from jaxatt.observers import registry
+    from jaxatt.types import ImuSample
+
+    entry = registry.get("madgwick")
+    g, a, m = _imu()
+    samples = ImuSample(np.arange(100) * 0.01, g, a, m)
+    with pytest.raises(ValueError, match="not finite|beta"):
+        montecarlo.run(entry.make(), entry.default_params()._replace(beta=np.nan), samples, 0.01)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Subprocesses: what a user at a terminal sees (no traceback; --debug shows it)
+# ------------------------------------------------------------------------------------------------------------
+def _cli(*args, **kw):
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen(
+        [sys.executable, "-m", "jaxatt", *args],
+        cwd=kw.pop("cwd", None),
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
+
+
+def test_subprocess_bad_input_has_no_traceback_and_debug_shows_it(files):
+    p = _cli("reproduce", "batista-ges", "--runs", "1", "--duration", "5", "--json", "/proc/x.json")
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 2 and err.strip().splitlines() == [err.strip()], (
+        err
+    )  # one line, nothing computed or printed before it
+    assert "Traceback" not in err and "/proc/x.json" in err
+    p = _cli("filter", "--log", str(files / "missing.csv"), "--out", str(files / "e.csv"), "--debug")
+    out, err = p.communicate(timeout=120)
+    assert p.returncode != 0 and "Traceback" in err
+
+
+def _wait_for(p, pattern, timeout=120.0):
+    """Read p's stderr (raw, as it arrives) until it matches ``pattern``; returns what was read."""
+    seen = b""
+    fd = p.stderr.fileno()
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        if ready:
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                break
+            seen += chunk
+            if re.search(pattern, seen.decode(errors="replace")):
+                return seen.decode(errors="replace")
+    raise AssertionError(f"never saw {pattern!r}; stderr so far: {seen[-500:]!r}")
+
+
+SO3 = ["reproduce", "batista-so3", "--runs", "6", "--chunk", "1", "--duration", "20", "--seed", "3"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The reference: the same Monte Carlo run once, uninterrupted, in this process."""
+    d = tmp_path_factory.mktemp("uninterrupted")
+    assert cli.main([*SO3, "--quiet", "--json", str(d / "ref.json")]) == 0
+    return d / "ref.json"
+
+
+@pytest.mark.parametrize("moment", ["while importing", "while compiling", "after the first chunk"])
+def test_sigint_exits_130_and_keeps_a_finished_result(tmp_path, uninterrupted, moment):
+    out = tmp_path / "mc.json"
+    out.write_bytes(uninterrupted.read_bytes())  # a finished result at --json
+    p = _cli(*SO3, "--progress", "--json", str(out))
+    if moment == "while importing":
+        time.sleep(0.3)
+    elif moment == "while compiling":
+        time.sleep(3.0)
+    else:
+        _wait_for(p, r"runs [1-5]/6")
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, (p.returncode, err[-800:])
+    assert "Traceback" not in err and "Segmentation" not in err
+    assert out.read_bytes() == uninterrupted.read_bytes(), "a finished result was replaced"
+
+
+def test_sigkill_then_resume_equals_the_uninterrupted_run(tmp_path, uninterrupted, capsys):
+    out = tmp_path / "mc.json"
+    runs = tmp_path / "mc.json.runs.npz"
+    p = _cli(*SO3, "--progress", "--json", str(out))
+    t0 = time.time()
+    while not (runs.exists() and out.exists()) and p.poll() is None and time.time() - t0 < 120:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGKILL)
+    p.communicate(timeout=60)
+    assert runs.exists(), "no runs were saved before the kill"
+    saved = json.loads(out.read_text())
+    assert saved["complete"] is False and 1 <= saved["runs_done"] < 6
+    assert cli.main([*SO3, "--quiet", "--json", str(out), "--resume"]) == 0
+    got, ref = json.loads(out.read_text()), json.loads(uninterrupted.read_text())
+    assert got["complete"] and got["runs_done"] == 6
+    for name, m in ref["metrics"].items():
+        np.testing.assert_array_equal(got["metrics"][name]["per_run"], m["per_run"], err_msg=name)
