@@ -299,6 +299,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ep.add_argument("--json", default=None, help="write the measures per window here")
     ep.add_argument("--plot", default=None, help="write a PNG of the measures over time here")
+    _output_flags(ep)
     for command in sub.choices.values():  # --debug after the command too (it keeps the top level's default)
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     return ap
@@ -786,10 +787,12 @@ def _excitation(args) -> int:
     io.check_output_path(args.json, "--json")
     io.check_output_path(args.plot, "--plot")
     if args.scenario:
+        from .progress import Heartbeat
         from .sim import references
 
         scn = references.make_scenario(args.scenario.replace("-", "_"))
-        res = analysis.excitation_of_scenario(scn, duration=args.duration, dt=args.dt, window=args.window)
+        with Heartbeat(f"simulating {args.scenario}", bool(_progress(args))):
+            res = analysis.excitation_of_scenario(scn, duration=args.duration, dt=args.dt, window=args.window)
         source = f"scenario {args.scenario}, {args.duration:g} s at {1 / args.dt:g} Hz"
     else:
         from .observers import complementary as comp

@@ -411,3 +411,53 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(tmp_path, uninterrupte
     assert got["complete"] and got["runs_done"] == 6
     for name, m in ref["metrics"].items():
         np.testing.assert_array_equal(got["metrics"][name]["per_run"], m["per_run"], err_msg=name)
+
+
+def test_sigint_without_an_earlier_result_writes_the_partial_json(tmp_path):
+    out = tmp_path / "mc.json"
+    p = _cli(*SO3, "--progress", "--json", str(out))
+    _wait_for(p, r"runs [1-5]/6")
+    p.send_signal(signal.SIGINT)
+    stdout, err = p.communicate(timeout=120)
+    assert p.returncode == 130 and "Traceback" not in err, err[-800:]
+    d = json.loads(out.read_text())
+    assert d["complete"] is False and 1 <= d["runs_done"] < 6
+    assert "rerun with --resume" in stdout
+
+
+def test_sigint_in_an_overwriting_tune_keeps_the_finished_gains_file(tmp_path):
+    gains = tmp_path / "g.json"
+    shipped = json.loads((REPO / "jaxatt" / "data" / "gains" / "batista-so3.json").read_text())
+    gains.write_text(json.dumps({**shipped, "status": "done"}))  # a finished fit
+    finished = gains.read_bytes()
+    tune = ["tune", "--experiment", "batista-so3", "--train-runs", "2", "--val-runs", "0", "--duration", "6"]
+    p = _cli(*tune, "--steps", "500", "--out", str(gains), "--overwrite", "--progress")
+    _wait_for(p, r"step +1/500")
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130 and "Traceback" not in err, err[-800:]
+    assert gains.read_bytes() == finished, "the finished gains file was replaced by an unfinished fit"
+    assert json.loads((tmp_path / "g.json.partial.json").read_text())["status"] == "interrupted"
+
+
+def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues_it(files, tmp_path):
+    trials = jaxatt.data.broad.load(files / "trials_ok")
+    out = tmp_path / "g.json"
+    first = jaxatt.fit("madgwick", None, trials, steps=1, out=str(out))
+    assert first.status == "done"
+    finished = out.read_bytes()
+
+    def interrupt_at_step_2(info):
+        if info.get("step") == 2:
+            raise KeyboardInterrupt
+
+    res = jaxatt.fit(
+        "madgwick", None, trials, steps=4, lr=0.1, out=str(out), overwrite=True, callback=interrupt_at_step_2
+    )
+    partial = jaxatt.fitting.fitter.partial_path(out)
+    assert res.status == "interrupted" and res.path == str(partial)
+    assert out.read_bytes() == finished
+    resumed = jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(out), resume=True)
+    assert resumed.status == "done" and resumed.path == str(out) and not partial.exists()
+    assert len(resumed.history) == 4  # steps 1-2 before the interrupt, 3-4 after (equality: tests/test_tune.py)
+    assert json.loads(out.read_text())["status"] == "done"
