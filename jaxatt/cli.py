@@ -392,8 +392,10 @@ def _reproduce(args) -> int:
         raise UserError(f"--aggressive does not apply to {args.experiment}")
     cfg = _study_config(study, args, extra)
     title = f"{args.experiment} reproduce" + (f" ({cfg.trajectory})" if hasattr(cfg, "trajectory") else "")
-    return _finish_study(
-        studies.reproduce(
+    from .progress import Heartbeat
+
+    with Heartbeat(f"jaxatt {args.command} {study.name}", bool(_progress(args))):
+        payload = studies.reproduce(
             study,
             cfg,
             runs=args.runs,
@@ -407,7 +409,7 @@ def _reproduce(args) -> int:
             title=title,
             resume=args.resume,
         )
-    )
+    return _finish_study(payload)
 
 
 def _simulate(args) -> int:
@@ -482,8 +484,10 @@ def _simulate(args) -> int:
             kw["r_hat_0"] = tuple(np.asarray(so3.euler_zyx_to_matrix(*np.deg2rad(r0_euler))).reshape(9))
         title = f"{name} simulate"
     cfg = _study_config(study, args, kw)
-    return _finish_study(
-        studies.reproduce(
+    from .progress import Heartbeat
+
+    with Heartbeat(f"jaxatt {args.command} {study.name}", bool(_progress(args))):
+        payload = studies.reproduce(
             study,
             cfg,
             runs=args.runs,
@@ -497,7 +501,7 @@ def _simulate(args) -> int:
             title=title,
             resume=args.resume,
         )
-    )
+    return _finish_study(payload)
 
 
 def _progress(args):
@@ -523,22 +527,25 @@ def _tune(args) -> int:
 
     io.check_output_path(args.out, "--out")
     config = {"duration": args.duration} if args.duration is not None else None
-    res = fitter.fit(
-        None,
-        None,
-        args.experiment,
-        steps=args.steps,
-        train_runs=args.train_runs,
-        val_runs=args.val_runs,
-        out=args.out,
-        seed=args.seed,
-        lr=args.lr,
-        config=config,
-        refine_schedule=args.refine_schedule,
-        resume=args.resume,
-        overwrite=args.overwrite,
-        quiet=not _progress(args),
-    )
+    from .progress import Heartbeat
+
+    with Heartbeat(f"jaxatt tune {args.experiment}", bool(_progress(args))):
+        res = fitter.fit(
+            None,
+            None,
+            args.experiment,
+            steps=args.steps,
+            train_runs=args.train_runs,
+            val_runs=args.val_runs,
+            out=args.out,
+            seed=args.seed,
+            lr=args.lr,
+            config=config,
+            refine_schedule=args.refine_schedule,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            quiet=not _progress(args),
+        )
     print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)
 
@@ -580,18 +587,21 @@ def _evaluate(args) -> int:
                 )
     if warn and not args.quiet:
         print(warn, file=sys.stderr)
-    payload = studies.evaluate(
-        study,
-        params,
-        runs=args.runs,
-        seed=args.seed,
-        json_path=args.json,
-        cfg=cfg,
-        gains_source=source,
-        quiet=args.quiet,
-        progress=_progress(args),
-        resume=args.resume,
-    )
+    from .progress import Heartbeat
+
+    with Heartbeat(f"jaxatt evaluate {study.name}", bool(_progress(args))):
+        payload = studies.evaluate(
+            study,
+            params,
+            runs=args.runs,
+            seed=args.seed,
+            json_path=args.json,
+            cfg=cfg,
+            gains_source=source,
+            quiet=args.quiet,
+            progress=_progress(args),
+            resume=args.resume,
+        )
     return _finish_study(payload)
 
 
@@ -668,19 +678,22 @@ def _broad_tune(args) -> int:
 
     io.check_output_path(args.out, "--out")
     trials = broad.load(args.data_dir, args.trials)
-    res = fitter.fit(
-        args.observer,
-        None,
-        trials,
-        steps=args.steps,
-        lr=args.lr,
-        start=args.init_gains,
-        out=args.out,
-        resume=args.resume,
-        overwrite=args.overwrite,
-        quiet=not _progress(args),
-        dtype="float64" if args.float64 else "float32",
-    )
+    from .progress import Heartbeat
+
+    with Heartbeat(f"jaxatt broad-tune {args.observer}", bool(_progress(args))):
+        res = fitter.fit(
+            args.observer,
+            None,
+            trials,
+            steps=args.steps,
+            lr=args.lr,
+            start=args.init_gains,
+            out=args.out,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            quiet=not _progress(args),
+            dtype="float64" if args.float64 else "float32",
+        )
     print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)
 

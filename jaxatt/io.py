@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
@@ -126,7 +127,8 @@ def summarise(per_run) -> dict:
         v = np.asarray(v, float)
         if v.size == 0:
             continue
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN metrics give NaN (reported as non-finite)
 
             def stat(f, v=v):
                 return f(v, axis=0).tolist() if v.ndim > 1 else float(f(v))

@@ -22,10 +22,42 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-__all__ = ["TextProgress", "Heartbeat", "make_reporter", "steps_hook", "active"]
+__all__ = [
+    "TextProgress",
+    "Heartbeat",
+    "close_line",
+    "done_reporting",
+    "report_line",
+    "make_reporter",
+    "steps_hook",
+    "active",
+]
 
 #: The reporting call in progress (module level: XLA runs host callbacks on its own threads).
 _CURRENT: list = [None]
+#: stderr's progress line: time of the last report (s, perf_counter) and whether a \r line is left open
+_LINE = {"last_report": -1e9, "open": False}
+
+
+def report_line(text: str, file=None) -> None:
+    """Print a full progress line on ``file`` (default stderr), ending an open self-overwriting line first."""
+    file = file if file is not None else sys.stderr
+    close_line(file)
+    print(text, file=file, flush=True)
+    _LINE["last_report"] = max(_LINE["last_report"], time.perf_counter())
+
+
+def done_reporting(file=None) -> None:
+    """Results are about to be printed: end the progress line and keep :class:`Heartbeat` quiet from now on."""
+    _LINE["last_report"] = float("inf")
+    close_line(file)
+
+
+def close_line(file=None) -> None:
+    """End a self-overwriting progress line left open on ``file`` (call before printing a full line)."""
+    if _LINE["open"]:
+        (file if file is not None else sys.stderr).write("\n")
+        _LINE["open"] = False
 
 
 class TextProgress:
@@ -51,27 +83,30 @@ class TextProgress:
             f"{rate:.3g} run-steps/s  {left:.0f} s left   " + ("\n" if final else "")
         )
         self.file.flush()
+        _LINE["last_report"], _LINE["open"] = now, not final
 
 
 class Heartbeat:
-    """Context manager: while a long call without in-scan reports runs (compiling, a BROAD batch, a long log),
-    rewrite one line ``label: N s`` on ``file`` (default stderr) every ``every_s`` seconds; nothing when
-    ``enabled`` is false. The line is ended when the block exits."""
+    """Context manager: while a long call runs, rewrite one line ``label: N s`` on ``file`` (default stderr) every
+    ``every_s`` seconds in which no other progress report (:class:`TextProgress`) came (compiling, a BROAD batch,
+    a long log); nothing when ``enabled`` is false. The line is ended when the block exits."""
 
     def __init__(self, label: str, enabled: bool = True, every_s: float = 2.0, file=None):
         self.label, self.enabled, self.every_s = label, bool(enabled), every_s
         self.file = file if file is not None else sys.stderr
         self._stop = threading.Event()
-        self._wrote = False
 
     def _beat(self):
         t0 = time.perf_counter()
         while not self._stop.wait(self.every_s):
+            if time.perf_counter() - _LINE["last_report"] < self.every_s:
+                continue
             self.file.write(f"\r{self.label}: {time.perf_counter() - t0:.0f} s ")
             self.file.flush()
-            self._wrote = True
+            _LINE["open"] = True
 
     def __enter__(self):
+        _LINE["last_report"] = -1e9
         if self.enabled:
             self._thread = threading.Thread(target=self._beat, daemon=True)
             self._thread.start()
@@ -81,9 +116,8 @@ class Heartbeat:
         if self.enabled:
             self._stop.set()
             self._thread.join()
-            if self._wrote:
-                self.file.write("\n")
-                self.file.flush()
+            close_line(self.file)
+            self.file.flush()
         return False
 
 

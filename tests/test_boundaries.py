@@ -343,6 +343,12 @@ def test_subprocess_bad_input_has_no_traceback_and_debug_shows_it(files):
         err
     )  # one line, nothing computed or printed before it
     assert "Traceback" not in err and "/proc/x.json" in err
+    p = _cli(
+        "simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "3", "--quiet", "--rate-scale", "1e6"
+    )
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 1 and len(err.strip().splitlines()) == 1, err  # no warnings before the line
+    assert "first non-finite at t = " in err
     p = _cli("filter", "--log", str(files / "missing.csv"), "--out", str(files / "e.csv"), "--debug")
     out, err = p.communicate(timeout=120)
     assert p.returncode != 0 and "Traceback" in err

@@ -100,7 +100,8 @@ class OptimizeResult(NamedTuple):
 
 def print_progress(info: dict, file=None) -> None:
     """Default progress display: one line per step (training loss, validation when computed, gradient norm)."""
-    file = file or sys.stderr
+    from ..progress import report_line
+
     val = (
         ""
         if info.get("val_loss") is None
@@ -111,11 +112,10 @@ def print_progress(info: dict, file=None) -> None:
     )
     ang = info.get("train_metric")
     angs = "" if ang is None else f" ({ang:.4g} {info.get('metric_unit', '')})"
-    print(
+    report_line(
         f"step {info['step']:4d}/{info['steps']}  train {info['train_loss']:.5g}{angs}  |g| "
         f"{info['grad_norm']:.3g}{val}  {info['step_s']:.1f} s/step",
-        file=file,
-        flush=True,
+        file,
     )
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import abc
 import math
-import sys
 import time
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
@@ -27,6 +26,7 @@ import jax
 import numpy as np
 
 from .. import io
+from ..progress import done_reporting, report_line
 
 __all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict"]
 
@@ -205,7 +205,7 @@ def table(rows: Sequence[Tuple[str, str]], payload: dict, units: Mapping[str, st
 # Reproduce / evaluate
 # ------------------------------------------------------------------------------------------------------------
 def _log(quiet):
-    return (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    return (lambda *a: None) if quiet else (lambda *a: report_line(" ".join(map(str, a))))
 
 
 def reproduce(
@@ -345,6 +345,7 @@ def reproduce(
     if len(obs) == 1:
         payload["timing"].update(next(iter(payload["observers"].values()))["timing"])
     report = study.format_report(payload)
+    done_reporting()
     head = (
         f"{payload['experiment']}: {payload['runs_done']} runs x {cfg.duration:g} s at {1 / cfg.dt:g} Hz, "
         f"observers in {dtype_name}" + ("" if payload["complete"] else "  [INTERRUPTED: partial results]")
