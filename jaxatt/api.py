@@ -159,7 +159,7 @@ def _override(base, gains: dict, name: str):
         raise ValueError(
             f"params of {name}: no field {', '.join(map(repr, unknown))}; fields: {', '.join(base._fields)}"
         )
-    return base._replace(**{k: np.asarray(v, dtype=np.result_type(getattr(base, k))) for k, v in gains.items()})
+    return base._replace(**{k: np.asarray(v, dtype=np.asarray(getattr(base, k)).dtype) for k, v in gains.items()})
 
 
 def _check_concrete(check, params):
