@@ -61,6 +61,12 @@ def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True):
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("boundaries")
+    make_files(d)
+    return d
+
+
+def make_files(d: Path) -> None:
+    """The input files of the cases in folder ``d`` (also used by research/boundaries/table.py)."""
     t, gyr, acc, mag = _log_rows()
     _write_csv(d / "log.csv", t, gyr, acc, mag)
     _write_csv(d / "huge_gyr.csv", t, gyr * 1e300, acc, mag)
@@ -93,7 +99,6 @@ def files(tmp_path_factory):
         _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
     (d / "trials_empty").mkdir()
     (d / "folder").mkdir()
-    return d
 
 
 def _run(argv, files, capsys):

@@ -83,40 +83,8 @@ NOTES = [
 
 
 def make_files(d: Path) -> None:
-    """The ``files`` fixture of tests/test_boundaries.py, without pytest."""
-    np = tb.np
-    t, gyr, acc, mag = tb._log_rows()
-    tb._write_csv(d / "log.csv", t, gyr, acc, mag)
-    tb._write_csv(d / "huge_gyr.csv", t, gyr * 1e300, acc, mag)
-    tb._write_csv(d / "backwards.csv", t[::-1], gyr, acc, mag)
-    (d / "no_header.csv").write_text("0,0,0,0\n0.01,0,0,0\n")
-    (d / "empty.csv").write_text("")
-    bad_inf = np.column_stack([t, gyr, acc, mag]).astype(object)
-    bad_inf[5, 1] = "inf"
-    (d / "inf.csv").write_text(
-        "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z\n" + "\n".join(",".join(map(str, r)) for r in bad_inf)
-    )
-    shipped = tb.REPO / "jaxatt" / "data" / "gains"
-    robust = json.loads((shipped / "robust_broad_all.json").read_text())
-    for name, value in (("nan", float("nan")), ("negative", -1.0)):
-        g = json.loads(json.dumps(robust))
-        g["gains"]["tau_acc"]["value"] = value
-        (d / f"robust_{name}.json").write_text(json.dumps(g))
-    (d / "robust_ok.json").write_text(json.dumps(robust))
-    (d / "so3_study.json").write_text((shipped / "batista-so3.json").read_text())
-    (d / "broken.json").write_text('{"format": "jaxatt-gains/2", "observer": ')
-    (d / "not_gains.json").write_text('{"hello": 1}')
-    for name, kw in {
-        "ok": {},
-        "no_mag": {"drop": ("imu_mag",)},
-        "rate0": {"rate": 0.0},
-        "truncated": {"truncate": True},
-        "no_truth": {"truth": False},
-    }.items():
-        (d / f"trials_{name}").mkdir()
-        tb._write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
-    (d / "trials_empty").mkdir()
-    (d / "folder").mkdir()
+    """The input files of the cases (the ``files`` fixture of tests/test_boundaries.py)."""
+    tb.make_files(d)
 
 
 def cases():
