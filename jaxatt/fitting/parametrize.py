@@ -212,7 +212,8 @@ class SPD(Transform):
         c = jnp.zeros((n, n), u.dtype).at[i, j].set(vals)
         s = jnp.ones(n, u.dtype) if self.scale is None else jnp.asarray(self.scale, u.dtype)
         cs = s[:, None] * c
-        return cs @ cs.T
+        g = cs @ cs.T
+        return 0.5 * (g + g.T)  # exactly symmetric whatever order the matrix product sums in
 
     @staticmethod
     def diagonal_mask(n: int) -> np.ndarray:
