@@ -43,6 +43,8 @@ __all__ = [
     "excitation_from_samples",
     "excitation_of_scenario",
     "plot_excitation",
+    "valid_readings",
+    "gap_threshold",
 ]
 
 
@@ -98,14 +100,26 @@ def _directions(v, T: int, name: str):
     return u, ok
 
 
-def _intervals(t: np.ndarray, max_gap: Optional[float]) -> np.ndarray:
-    """(T-1,) sample intervals (s), zero for a gap longer than ``max_gap`` (default 10 x the median interval)."""
-    d = np.diff(t)
+def valid_readings(reading) -> np.ndarray:
+    """(T,) bool: the rows of a (T, 3) sensor reading that are finite and non-zero (the others are missing)."""
+    r = np.asarray(reading, float)
+    with np.errstate(invalid="ignore"):
+        return np.all(np.isfinite(r), axis=-1) & (np.linalg.norm(np.nan_to_num(r), axis=-1) > 0)
+
+
+def gap_threshold(t, max_gap: Optional[float] = None) -> float:
+    """The longest sample interval (s) that counts as data: ``max_gap``, default 10 x the median interval."""
     if max_gap is None:
-        max_gap = 10.0 * float(np.median(d))
-    elif not (math.isfinite(float(max_gap)) and max_gap > 0):
+        return 10.0 * float(np.median(np.diff(np.asarray(t, float))))
+    if not (math.isfinite(float(max_gap)) and max_gap > 0):
         raise ValueError(f"max_gap must be a finite positive number of seconds, got {max_gap}")
-    return np.where(d <= max_gap, d, 0.0)
+    return float(max_gap)
+
+
+def _intervals(t: np.ndarray, max_gap: Optional[float]) -> np.ndarray:
+    """(T-1,) sample intervals (s), zero for a gap longer than :func:`gap_threshold`."""
+    d = np.diff(t)
+    return np.where(d <= gap_threshold(t, max_gap), d, 0.0)
 
 
 def _cumulative(f: np.ndarray, d: np.ndarray, rule: str) -> np.ndarray:
@@ -279,9 +293,7 @@ def excitation_from_samples(
             reading = getattr(samples, name)
             if reading is None:
                 raise ValueError(f"imu_fields names {name!r} but the samples have no {name} readings")
-            r = np.asarray(reading, float)
-            with np.errstate(invalid="ignore"):
-                valid.append(np.all(np.isfinite(r), axis=-1) & (np.linalg.norm(np.nan_to_num(r), axis=-1) > 0))
+            valid.append(valid_readings(reading))
         valid = np.stack(valid, axis=1)  # (T, n)
         kw = dict(ref_inertial=np.where(valid[..., None], refs[None], np.nan))
     elif isinstance(samples, VectorSample):

@@ -823,15 +823,13 @@ def _excitation(args) -> int:
         res = analysis.excitation_from_samples(samples, window=args.window, params=p, imu_fields=fields)
         source = f"log {args.log} ({', '.join(fields)}; references in {args.frame})"
         for f in fields:
-            r = np.asarray(getattr(samples, f), float)
-            with np.errstate(invalid="ignore"):
-                ok = np.all(np.isfinite(r), axis=-1) & (np.linalg.norm(np.nan_to_num(r), axis=-1) > 0)
+            ok = analysis.valid_readings(getattr(samples, f))
             print(f"{f}: {100 * ok.mean():.1f} % of the samples are valid readings (finite, non-zero); only they count")
-        d = np.diff(np.asarray(samples.t, float))
-        gaps = d > 10 * np.median(d)
+        d, longest = np.diff(np.asarray(samples.t, float)), analysis.gap_threshold(samples.t)
+        gaps = d > longest
         if gaps.any():
             print(
-                f"{gaps.sum()} gaps in the timestamps longer than {10 * np.median(d):.3g} s "
+                f"{gaps.sum()} gaps in the timestamps longer than {longest:.3g} s "
                 f"({d[gaps].sum():.6g} s in all) count as no data"
             )
     T = args.window
