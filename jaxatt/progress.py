@@ -3,10 +3,10 @@
 The jitted runners report from inside the scan once per noise block (1000 time steps of every run in the batch)
 through ``jax.debug.callback`` - never a Python loop over time steps. What is shown is up to the *reporter*:
 
-* ``progress=True``: :class:`TextProgress` (one self-overwriting line on stderr: runs done, simulated steps,
-  run-steps per second, time left);
+* ``progress=True``: :class:`TextProgress`, a tqdm bar of run-steps (on stderr in a terminal, a widget in a
+  notebook when ipywidgets is installed): runs done, run-steps per second, time left;
 * ``progress=callable``: ``callable(info)`` with ``info`` = {"runs_done", "runs_total", "chunk_steps_done",
-  "steps_per_run", "run_steps_done", "run_steps_total", "elapsed_s"} (e.g. a tqdm bar or a notebook widget);
+  "steps_per_run", "run_steps_done", "run_steps_total", "elapsed_s"} (your own display or logger);
 * ``progress=None`` / ``False`` (default): nothing is compiled in and nothing is called.
 
 :func:`jaxatt.montecarlo.monte_carlo` reports per block and per chunk; :func:`jaxatt.fit` reports per
@@ -18,7 +18,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Callable, Optional, Union
+from typing import Any, Callable, Dict, Optional, Union
 
 import numpy as np
 
@@ -35,15 +35,21 @@ __all__ = [
 
 #: The reporting call in progress (module level: XLA runs host callbacks on its own threads).
 _CURRENT: list = [None]
-#: stderr's progress line: time of the last report (s, perf_counter) and whether a \r line is left open
-_LINE = {"last_report": -1e9, "open": False}
+#: stderr's progress line: time of the last report (s, perf_counter), whether a \r line is left open, the open bar
+_LINE: Dict[str, Any] = {"last_report": -1e9, "open": False, "bar": None}
 
 
 def report_line(text: str, file=None) -> None:
     """Print a full progress line on ``file`` (default stderr), ending an open self-overwriting line first."""
     file = file if file is not None else sys.stderr
-    close_line(file)
-    print(text, file=file, flush=True)
+    bar = _LINE.get("bar")
+    if bar is not None and not bar.disable:  # print above the bar, which stays open
+        bar.clear()
+        print(text, file=file, flush=True)
+        bar.refresh()
+    else:
+        close_line(file)
+        print(text, file=file, flush=True)
     _LINE["last_report"] = max(_LINE["last_report"], time.perf_counter())
 
 
@@ -54,36 +60,60 @@ def done_reporting(file=None) -> None:
 
 
 def close_line(file=None) -> None:
-    """End a self-overwriting progress line left open on ``file`` (call before printing a full line)."""
+    """End the progress bar or self-overwriting line left open on ``file`` (call before printing a full line)."""
+    bar = _LINE.get("bar")
+    if bar is not None:
+        _LINE["bar"] = None
+        bar.close()
     if _LINE["open"]:
         (file if file is not None else sys.stderr).write("\n")
         _LINE["open"] = False
 
 
+def _tqdm_class():
+    """tqdm's notebook bar in a Jupyter kernel with ipywidgets, its text bar otherwise (no IProgress warning)."""
+    from tqdm import tqdm as text_bar
+
+    if "ipykernel" in sys.modules:
+        try:
+            import ipywidgets  # noqa: F401
+            from tqdm.notebook import tqdm as widget_bar
+
+            return widget_bar
+        except ImportError:
+            pass
+    return text_bar
+
+
 class TextProgress:
-    """One line on ``file`` (default stderr), rewritten at most every ``min_interval_s`` seconds."""
+    """A tqdm progress bar of run-steps (terminal: on ``file``, default stderr; notebook: a widget), refreshed at
+    most every ``min_interval_s`` seconds, closed when the last run-step is reported."""
 
     def __init__(self, label: str = "monte carlo", file=None, min_interval_s: float = 0.5):
         self.label = label
         self.file = file if file is not None else sys.stderr
         self.min_interval_s = min_interval_s
-        self._last = -1e9
+        self._bar: Any = None
 
     def __call__(self, info: dict) -> None:
-        now = time.perf_counter()
-        final = info["run_steps_done"] >= info["run_steps_total"]
-        if not final and now - self._last < self.min_interval_s:
-            return
-        self._last = now
-        frac = info["run_steps_done"] / max(info["run_steps_total"], 1)
-        rate = info["run_steps_done"] / max(info["elapsed_s"], 1e-9)
-        left = (info["run_steps_total"] - info["run_steps_done"]) / max(rate, 1e-9)
-        self.file.write(
-            f"\r{self.label}: {100 * frac:5.1f} %  runs {info['runs_done']}/{info['runs_total']}  "
-            f"{rate:.3g} run-steps/s  {left:.0f} s left   " + ("\n" if final else "")
-        )
-        self.file.flush()
-        _LINE["last_report"], _LINE["open"] = now, not final
+        total, done = int(info["run_steps_total"]), int(info["run_steps_done"])
+        if self._bar is None or _LINE.get("bar") is not self._bar:  # first report, or the bar was closed
+            self._bar = _tqdm_class()(
+                total=total,
+                initial=done,
+                desc=self.label,
+                unit="run-steps",
+                unit_scale=True,
+                file=self.file,
+                mininterval=self.min_interval_s,
+                dynamic_ncols=True,
+            )
+            _LINE["bar"] = self._bar
+        self._bar.set_postfix_str(f"runs {info['runs_done']}/{info['runs_total']}", refresh=False)
+        self._bar.update(done - self._bar.n)
+        _LINE["last_report"] = time.perf_counter()
+        if done >= total and info["runs_done"] >= info["runs_total"]:
+            close_line(self.file)
 
 
 class Heartbeat:

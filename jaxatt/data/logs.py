@@ -20,6 +20,7 @@ without pickle.
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -113,46 +114,76 @@ def _parse_float(s: str, row: int, col: str, source: str) -> float:
         raise ValueError(f"{source}: line {row}: column {col!r}: {s!r} is not a number") from None
 
 
+def _read_table_fast(f, columns: list) -> Optional[np.ndarray]:
+    """The data rows' ``columns`` (indices) as a (rows, len(columns)) float array by numpy's C reader, or None
+    when a row is not plain numbers there (an empty cell, a quoted field, a short row): the checked reader
+    then says where."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": handled by the checked reader
+            table = np.loadtxt(f, delimiter=",", ndmin=2, dtype=np.float64, comments=None, usecols=columns)
+    except (ValueError, IndexError):
+        return None
+    return table if table.size else None
+
+
+def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
+    """The data rows' ``columns`` cell by cell: empty cells are NaN, anything else that is not a number is an
+    error naming its line and column."""
+    rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise ValueError(f"{src}: no data rows")
+    table = np.empty((len(rows), len(columns)))
+    need = max(columns) + 1
+    for k, r in enumerate(rows):
+        if len(r) < need:
+            raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
+        for j, i in enumerate(columns):
+            table[k, j] = _parse_float(r[i], k + 2, header[i], src)
+    return table
+
+
 def load_csv(path, *, with_truth: bool = False):
-    """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None))."""
+    """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None)).
+
+    Plain numeric files go through numpy's C reader; a file with empty cells (read as NaN) or anything unusual
+    is read cell by cell, and a cell that is not a number is refused with its line and column."""
     path = Path(path)
     src = str(path)
     with open(path, newline="") as f:
-        reader = csv.reader(f)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ValueError(f"{src}: empty file (a header line is required)") from None
-        rows = [r for r in reader if r and any(c.strip() for c in r)]
-    if any(header) and all(_is_number(h) for h in header if h):
-        raise ValueError(
-            f"{src}: the first line must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
-        )
-    if len(set(header)) != len(header):
-        raise ValueError(f"{src}: duplicate column names in the header: {header}")
-    idx = {h: i for i, h in enumerate(header)}
-    for c in CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]:
-        if c not in idx:
-            raise ValueError(f"{src}: required column {c!r} missing (header: {header})")
-    groups = {}
-    for name, cols in CSV_COLUMNS.items():
-        present = [c in idx for c in cols]
-        if any(present) and not all(present):
-            missing = [c for c, p in zip(cols, present) if not p]
-            raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
-        if all(present):
-            groups[name] = cols
-    if not rows:
-        raise ValueError(f"{src}: no data rows")
+        first = f.readline()
+        if not first.strip():
+            raise ValueError(f"{src}: empty file (a header line is required)")
+        header = [h.strip() for h in next(csv.reader([first]))]
+        if any(header) and all(_is_number(h) for h in header if h):
+            raise ValueError(
+                f"{src}: the first line must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
+            )
+        if len(set(header)) != len(header):
+            raise ValueError(f"{src}: duplicate column names in the header: {header}")
+        idx = {h: i for i, h in enumerate(header)}
+        for c in CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]:
+            if c not in idx:
+                raise ValueError(f"{src}: required column {c!r} missing (header: {header})")
+        groups = {}
+        for name, cols in CSV_COLUMNS.items():
+            present = [c in idx for c in cols]
+            if any(present) and not all(present):
+                missing = [c for c, p in zip(cols, present) if not p]
+                raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
+            if all(present):
+                groups[name] = cols
+        names = [c for cols in groups.values() for c in cols]
+        columns = [idx[c] for c in names]
+        body = f.tell()
+        table = _read_table_fast(f, columns)
+        if table is None:
+            f.seek(body)
+            table = _read_table_checked(f, header, columns, src)
+    at = {c: j for j, c in enumerate(names)}
     data = {}
     for name, cols in groups.items():
-        a = np.empty((len(rows), len(cols)))
-        for j, c in enumerate(cols):
-            i = idx[c]
-            for k, r in enumerate(rows):
-                if i >= len(r):
-                    raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
-                a[k, j] = _parse_float(r[i], k + 2, c, src)
+        a = table[:, [at[c] for c in cols]]
         data[name] = a[:, 0] if name == "t" else a
     samples, q = check_log(
         ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")), data.get("quat_true"), source=src
