@@ -119,3 +119,28 @@ def test_save_validates_and_suffix(tmp_path):
     logs.save_log(tmp_path / "UPPER.NPZ", s)
     assert (tmp_path / "UPPER.NPZ").exists()
     assert_same(s, logs.load_log(tmp_path / "UPPER.NPZ"))
+
+
+def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
+    """numpy's C reader (plain numeric files) and the cell-by-cell reader (the fallback) give the same table,
+    and a file the fast reader refuses (an empty cell) still loads through the fallback."""
+    rng = np.random.default_rng(3)
+    n = 500
+    s = ImuSample(np.arange(n) * 0.01, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+    p = tmp_path / "x.csv"
+    logs.save_csv(p, s)
+    fast = logs.load_csv(p)
+    with open(p, newline="") as f:
+        header = f.readline().strip().split(",")
+        checked = logs._read_table_checked(f, header, list(range(len(header))), str(p))
+    np.testing.assert_array_equal(fast.t, checked[:, 0])
+    np.testing.assert_array_equal(fast.gyr, checked[:, 1:4])
+    np.testing.assert_array_equal(fast.mag, checked[:, 7:10])
+    with open(p, newline="") as f:
+        f.readline()
+        assert logs._read_table_fast(f, list(range(len(header)))) is not None
+    lines = p.read_text().splitlines()
+    lines[5] = lines[5].replace(lines[5].split(",")[2], "", 1)  # an empty gyr_y cell on line 6
+    p.write_text("\n".join(lines) + "\n")
+    got = logs.load_csv(p)
+    assert np.isnan(got.gyr[4, 1]) and np.isfinite(np.delete(got.gyr, 4, axis=0)).all()
