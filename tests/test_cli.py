@@ -7,12 +7,32 @@ import pytest
 
 from jaxatt import cli
 
+PROVENANCE_KEYS = {
+    "date_utc",
+    "versions",
+    "jax_backend",
+    "jax_devices",
+    "x64",
+    "git_commit",
+    "command_line",
+    "xla_flags",
+}
+
+
+def assert_provenance(env: dict) -> None:
+    """A result's provenance: versions, devices, git commit (None outside a checkout), command line, XLA_FLAGS."""
+    assert PROVENANCE_KEYS <= set(env), PROVENANCE_KEYS - set(env)
+    assert env["versions"]["jaxatt"] and env["versions"]["jax"] and isinstance(env["command_line"], list)
+    assert env["jax_devices"] and isinstance(env["xla_flags"], str)
+    assert env["git_commit"] is None or len(env["git_commit"].split("+")[0]) == 40
+
 
 def test_reproduce_batista_so3_writes_metrics_json(tmp_path):
     out = tmp_path / "so3.json"
     rc = cli.main(["reproduce", "batista-so3", "--runs", "2", "--duration", "30", "--quiet", "--json", str(out)])
     assert rc == 0
     d = json.loads(out.read_text())
+    assert_provenance(d["environment"])
     assert d["complete"] and d["runs_done"] == 2
     m = d["metrics"]
     assert len(m["mean_angle_error_deg"]["per_run"]) == 2
@@ -62,6 +82,7 @@ def test_excitation_command_flags_unobservable_scenario(tmp_path, capsys):
     assert cli.main(["excitation", "--scenario", "constant", "--duration", "20", "--json", str(out)]) == 0
     assert "NOT exciting" in capsys.readouterr().out
     d = json.loads(out.read_text())
+    assert_provenance(d["environment"])
     assert max(d["measures"]["lambda2"]) < 1e-9
     assert cli.main(["excitation", "--scenario", "two-constant", "--duration", "20"]) == 0
     assert "exciting in every window" in capsys.readouterr().out
@@ -196,6 +217,7 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     )
     assert rc == 0
     d = json.loads(gains.read_text())
+    assert_provenance(d["provenance"])
     assert d["format"] == "jaxatt-gains/2" and d["observer"] == d["study"] == "batista-so3" and d["status"] == "done"
     # a second tune to the same file is refused unless resumed or overwritten
     assert cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--out", str(gains)]) == 2
@@ -221,6 +243,7 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
         == 0
     )
     e = json.loads(out.read_text())
+    assert_provenance(e["environment"])
     assert e["gains_path"] == str(gains) and "comparison" in e and e["complete"]
     # gains of another study are refused
     assert cli.main(["evaluate", "--experiment", "batista-ges", "--gains", str(gains), "--runs", "1"]) == 2
@@ -253,6 +276,7 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
     out = tmp_path / "b.json"
     assert cli.main(["broad", "--data-dir", str(d), "--observer", "madgwick", "--json", str(out)]) == 0
     b = json.loads(out.read_text())
+    assert_provenance(b["environment"])
     assert set(b["trials"]) == {"01_undisturbed_sim", "24_disturbed_sim"}
     assert set(b["groups"]) == {"undisturbed", "disturbed", "all"} and b["observer"] == "madgwick"
     trials = jaxatt.data.broad.load(d)
@@ -268,6 +292,7 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
         == 0
     )
     saved = json.loads(g.read_text())
+    assert_provenance(saved["provenance"])
     assert saved["observer"] == "madgwick" and saved["status"] == "done" and "resume" in saved
     assert cli.main(["broad", "--data-dir", str(d), "--observer", "madgwick", "--gains", str(g)]) == 0
     # a finished cosine-schedule fit cannot be resumed to another step count (its learning-rate schedule would
