@@ -1,0 +1,74 @@
+"""jaxatt.frames: the conversions at the edges (frames, quaternion order, scipy, units), checked against scipy's
+rotations and jaxatt.so3's quaternion-to-matrix map (independent computations)."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxatt import frames, so3
+
+
+def _random_quats(n, seed=0):
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[:, :1] < 0, -q, q)
+
+
+def test_frame_rotations_are_proper_and_compose():
+    east_enu, north_enu, up_enu = np.eye(3)
+    ned = frames.frame_rotation("NED", "ENU")
+    np.testing.assert_array_equal(ned @ north_enu, [1, 0, 0])  # north is NED's x
+    np.testing.assert_array_equal(ned @ east_enu, [0, 1, 0])
+    np.testing.assert_array_equal(ned @ up_enu, [0, 0, -1])  # down
+    nwu = frames.frame_rotation("NWU", "ENU")
+    np.testing.assert_array_equal(nwu @ east_enu, [0, -1, 0])  # west is NWU's y
+    for a in frames.FRAMES:
+        np.testing.assert_allclose(np.linalg.det(frames.frame_rotation(a, "ENU")), 1.0)
+        np.testing.assert_array_equal(frames.up(a), frames.frame_rotation(a, "ENU") @ up_enu)
+        for b in frames.FRAMES:
+            for c in frames.FRAMES:
+                np.testing.assert_allclose(
+                    frames.frame_rotation(a, b) @ frames.frame_rotation(b, c), frames.frame_rotation(a, c)
+                )
+
+
+@pytest.mark.parametrize("to,frm", [("NED", "ENU"), ("ENU", "NED"), ("NWU", "ENU"), ("NED", "NWU"), ("ENU", "ENU")])
+def test_change_frame_is_the_left_multiplied_rotation(to, frm):
+    q = _random_quats(50)
+    r_frm = np.asarray(so3.quat_to_matrix(q))
+    q_to = frames.change_frame(q, to, frm)
+    np.testing.assert_allclose(np.asarray(so3.quat_to_matrix(q_to)), frames.frame_rotation(to, frm) @ r_frm, atol=1e-14)
+    # a vector measured in the sensor frame, expressed in frm then moved, equals the rotation by q_to
+    v = np.random.default_rng(1).normal(size=(50, 3))
+    v_frm = np.einsum("nij,nj->ni", r_frm, v)
+    np.testing.assert_allclose(
+        frames.change_vector_frame(v_frm, to, frm), np.einsum("nij,nj->ni", so3.quat_to_matrix(q_to), v), atol=1e-13
+    )
+    assert frames.change_frame(q.astype(np.float32), to, frm).dtype == np.float32
+
+
+def test_scipy_round_trip_and_order():
+    q = _random_quats(20, seed=2)
+    rot = frames.to_scipy(q)
+    np.testing.assert_allclose(rot.as_matrix(), np.asarray(so3.quat_to_matrix(q)), atol=1e-14)
+    np.testing.assert_allclose(frames.from_scipy(rot), q, atol=1e-15)
+    np.testing.assert_array_equal(frames.to_xyzw(q)[:, 3], q[:, 0])
+    np.testing.assert_array_equal(frames.from_xyzw(frames.to_xyzw(q)), q)
+    # scipy's scalar-last quaternion of a 90-degree turn about z
+    np.testing.assert_allclose(
+        frames.from_scipy(Rotation.from_euler("z", 90, degrees=True)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)]
+    )
+
+
+def test_units():
+    np.testing.assert_allclose(frames.deg_s_to_rad_s(180.0), np.pi)
+    np.testing.assert_allclose(frames.rad_s_to_deg_s(frames.deg_s_to_rad_s([1.0, -2.5])), [1.0, -2.5])
+    assert frames.g_to_m_s2(1.0) == 9.80665 and frames.m_s2_to_g(9.80665) == 1.0
+    assert frames.gauss_to_ut(0.5) == 50.0 and frames.ut_to_gauss(50.0) == 0.5  # 1 G = 100 uT
+    assert frames.nt_to_ut(48_000.0) == 48.0 and frames.ut_to_nt(48.0) == 48_000.0
+
+
+def test_check_frame():
+    assert frames.check_frame("ned") == "NED"
+    with pytest.raises(ValueError, match="frame must be one of ENU, NED, NWU, got 'XYZ'"):
+        frames.check_frame("XYZ")
