@@ -97,8 +97,9 @@ class TextProgress:
 
     def __call__(self, info: dict) -> None:
         total, done = int(info["run_steps_total"]), int(info["run_steps_done"])
-        if self._bar is None or _LINE.get("bar") is not self._bar:  # first report, or the bar was closed
-            self._bar = _tqdm_class()(
+        bar = self._bar
+        if bar is None or _LINE.get("bar") is not bar:  # first report, or the bar was closed
+            bar = self._bar = _tqdm_class()(
                 total=total,
                 initial=done,
                 desc=self.label,
@@ -108,9 +109,9 @@ class TextProgress:
                 mininterval=self.min_interval_s,
                 dynamic_ncols=True,
             )
-            _LINE["bar"] = self._bar
-        self._bar.set_postfix_str(f"runs {info['runs_done']}/{info['runs_total']}", refresh=False)
-        self._bar.update(done - self._bar.n)
+            _LINE["bar"] = bar
+        bar.set_postfix_str(f"runs {info['runs_done']}/{info['runs_total']}", refresh=False)
+        bar.update(done - bar.n)
         _LINE["last_report"] = time.perf_counter()
         if done >= total and info["runs_done"] >= info["runs_total"]:
             close_line(self.file)
