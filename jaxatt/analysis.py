@@ -32,7 +32,7 @@ excitation.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import Any, Dict, NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -288,14 +288,14 @@ def excitation_from_samples(
         fields = tuple(imu_fields)
         if len(set(fields)) != len(fields) or not set(fields) <= {"acc", "mag"}:
             raise ValueError(f"imu_fields must be distinct names among 'acc', 'mag', got {fields}")
-        valid = []
+        valid_rows = []
         for name in fields:
             reading = getattr(samples, name)
             if reading is None:
                 raise ValueError(f"imu_fields names {name!r} but the samples have no {name} readings")
-            valid.append(valid_readings(reading))
-        valid = np.stack(valid, axis=1)  # (T, n)
-        kw = dict(ref_inertial=np.where(valid[..., None], refs[None], np.nan))
+            valid_rows.append(valid_readings(reading))
+        valid = np.stack(valid_rows, axis=1)  # (T, n)
+        kw: Dict[str, Any] = dict(ref_inertial=np.where(valid[..., None], refs[None], np.nan))
     elif isinstance(samples, VectorSample):
 
         def ref(meas, carried, name):

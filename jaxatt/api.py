@@ -53,7 +53,7 @@ ObserverLike = Union[str, Observer, registry.Entry]
 def compute_dtype(*arrays, dtype=None, what: str = "input"):
     """The arithmetic for arrays of the given dtypes: ``dtype`` if given; float64 when any input is float64 and x64
     is on; float32 otherwise (with a warning when float64 input is computed in float32)."""
-    x64 = bool(jax.config.jax_enable_x64)
+    x64 = bool(jax.config.values["jax_enable_x64"])
     if dtype is not None:
         dt = np.dtype(dtype)
         if dt not in (np.float32, np.float64):
@@ -252,6 +252,7 @@ def filter(
     """
     frame = frames.check_frame(frame)
     gyr_a = _vectors("gyr", gyr, None, True)
+    assert gyr_a is not None  # required: _vectors raised on None
     n = gyr_a.shape[0]
     if n < 2:
         raise ValueError(f"gyr must have at least 2 samples, got {n}")
@@ -342,7 +343,8 @@ def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
             s for s in per_trial.values() if (g == "all" or s.group == g) and np.isfinite(s.total_rmse_deg)
         ]  # trials without ground truth (NaN) are not in the means
         if rows:
-            out[g] = GroupScore(*(float(np.mean([getattr(r, m) for r in rows])) for m in METRICS), len(rows))
+            total, heading, inclination = (float(np.mean([getattr(r, m) for r in rows])) for m in METRICS)
+            out[g] = GroupScore(total, heading, inclination, len(rows))
     return out
 
 

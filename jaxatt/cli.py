@@ -888,8 +888,8 @@ _COMMANDS = {
 }
 
 
-_INTERRUPTED = []
-_DEFERRED = []
+_INTERRUPTED: List[int] = []  # signal numbers
+_DEFERRED: List[int] = []
 #: functions in which an exception is swallowed ("Exception ignored in ..."): a Ctrl-C landing there is re-sent
 _SWALLOWING = {"__del__", "_xla_gc_callback"}
 

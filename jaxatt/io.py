@@ -101,7 +101,8 @@ def write_json(path, payload: dict) -> None:
 
 def write_npz(path, arrays: Mapping[str, Any]) -> None:
     """Write numpy arrays as an uncompressed NPZ atomically (:func:`write_atomic`), at ``path`` exactly."""
-    write_atomic(path, lambda f: np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()}), binary=True)
+    contents: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
+    write_atomic(path, lambda f: np.savez(f, **contents), binary=True)
 
 
 def read_json(path, what: str = "file") -> dict:
@@ -197,7 +198,7 @@ def environment() -> dict:
         },
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
-        "x64": bool(jax.config.jax_enable_x64),
+        "x64": bool(jax.config.values["jax_enable_x64"]),
         "git_commit": _git_commit(),
         "command_line": list(sys.argv),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),

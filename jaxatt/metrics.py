@@ -72,7 +72,7 @@ class WindowMetrics(NamedTuple):
     errors: Dict[str, RunningStats]
     angle_sum: jax.Array
     angle_max: jax.Array
-    count: jax.Array
+    count: jax.Array  # type: ignore[assignment]  # public field name; shadows tuple.count, as intended
     angle_last: jax.Array
     errors_last: Dict[str, jax.Array]
 
@@ -141,7 +141,7 @@ def check_windows(windows) -> tuple:
 class WindowMoments(NamedTuple):
     """Per-run sums over each window (leading axis = window): sample count, sum |e| and sum e^2 per element."""
 
-    count: jax.Array
+    count: jax.Array  # type: ignore[assignment]  # public field name; shadows tuple.count, as intended
     sum_abs: Dict[str, jax.Array]
     sum_sq: Dict[str, jax.Array]
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from typing import Any, Callable, Dict, NamedTuple, Optional
+from typing import Any, Callable, Dict, NamedTuple, Optional, Union
 
 import jax
 import jax.numpy as jnp
@@ -129,6 +129,7 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
+    steps: Union[np.ndarray, float]
     if dt is None:
         steps = np.diff(np.asarray(samples.t, float))
         if not np.all(np.isfinite(steps)) or np.any(steps <= 0):
@@ -365,8 +366,8 @@ class MonteCarloResult(NamedTuple):
         what = {}
         for k, v in self.per_run.items():
             b = ~np.isfinite(np.asarray(v, float).reshape(n, -1)).all(axis=1)
-            for i in np.flatnonzero(b & ~bad):
-                what[int(i)] = k
+            for j in np.flatnonzero(b & ~bad):
+                what[int(j)] = k
             bad |= b
         t_bad = np.asarray(self.first_nonfinite_t, float) if self.first_nonfinite_t is not None else np.full(n, np.inf)
         bad |= np.isfinite(t_bad)

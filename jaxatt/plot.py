@@ -138,7 +138,7 @@ def convergence_plot(
     run_style = dict(color="0.25", lw=0.5) if tm is not None else dict(color="tab:blue", lw=0.7)
     for ax, (k, label) in zip(axes, panels.items()):
         ax.semilogy(t[early], np.maximum(np.asarray(trace[k])[early], 1e-300), label="run 0", **run_style)
-        if tm is not None and k in mc_traces:
+        if tm is not None and mc_traces is not None and k in mc_traces:
             sel = tm <= transient_s
             envelope(
                 ax,
@@ -160,7 +160,7 @@ def convergence_plot(
     late_vals = np.asarray(trace["angle_error_deg"])[late]
     ax.plot(t[late], late_vals, label="run 0", **run_style)
     top = float(np.nanmax(late_vals)) if late_vals.size else 1.0
-    if tm is not None:
+    if tm is not None and mc_traces is not None:
         sel = tm >= steady_from_s
         mc_late = np.asarray(mc_traces["angle_error_deg"])[:, sel]
         envelope(

@@ -18,7 +18,11 @@ from __future__ import annotations
 
 from typing import Any, Callable, NamedTuple, Optional
 
-__all__ = ["ImuSample", "VectorSample", "Interval", "Observer", "HOLDS"]
+__all__ = ["ArrayLike", "ImuSample", "VectorSample", "Interval", "Observer", "HOLDS"]
+
+#: The type of a gain or reference in an observer's ``Params``: a numpy array or float when the params are built,
+#: a jax array or a tracer inside ``jit`` / ``grad`` / ``vmap``. Deliberately loose for the type checker (``Any``).
+ArrayLike = Any
 
 #: How a step over [t_k, t_{k+1}] sees the samples (see :class:`Interval` and :mod:`jaxatt.engine`):
 #: "zoh" hands it sample k (held over the step, continuous-time observers integrated forward), "linear" an

@@ -194,7 +194,8 @@ def optimize(
         best_theta = {k: jnp.asarray(v, dtype) for k, v in resume["best_theta"].items()}
         best_val, best_step, start_val = resume["best_val"], resume["best_step"], resume["start_val"]
         bad, n_nonfinite = resume["bad"], resume["n_nonfinite"]
-        best_train = resume.get("best_train") if resume.get("best_train") is not None else math.inf
+        saved_best_train = resume.get("best_train")
+        best_train = saved_best_train if saved_best_train is not None else math.inf
         history = list(resume["history"])
         sampler.restore(resume["sampler"])
         first = int(resume["step"]) + 1
@@ -255,7 +256,8 @@ def optimize(
             if val_fn is not None and (step % val_every == 0 or step == steps):
                 vl, vm = validate(theta)
                 rec.update(val_loss=vl, val_metric=vm)
-                if math.isfinite(vl) and vl < best_val * (1.0 - min_delta):
+                # best_val is None when resuming, with validation, a fit saved without it: the first one is the best
+                if math.isfinite(vl) and (best_val is None or vl < best_val * (1.0 - min_delta)):
                     best_val, best_theta, best_step, bad, improved = vl, theta, step, 0, True
                 else:
                     bad += 1
@@ -528,7 +530,7 @@ def fit(
         step_remat=step_remat,
         devices=devices,
     )
-    if out_path is not None and out_path != final_path and res.status in FINISHED:
+    if out_path is not None and final_path is not None and out_path != final_path and res.status in FINISHED:
         os.replace(out_path, final_path)
         res = res._replace(path=str(final_path))
         if not quiet:

@@ -138,7 +138,7 @@ segment_length = engine.segment_length
 class _Acc(NamedTuple):
     loss: jax.Array  # (n_windows,) sums of e(t)
     angle: jax.Array  # (n_windows,) sums of the angle error (deg)
-    count: jax.Array  # (n_windows,)
+    n: jax.Array  # (n_windows,) sample counts (a field named count would shadow tuple.count)
     last_angle: jax.Array  # ()
 
 
@@ -161,7 +161,7 @@ def loss_reducer(spec: LossSpec) -> engine.Reducer:
         e = point(truth, out).astype(dtype)
         angle = M.angle_error_deg(truth.r.astype(dtype), r)
         w = ((t >= starts) & (t < ends)).astype(dtype)
-        return _Acc(acc.loss + w * e, acc.angle + w * angle, acc.count + w, angle), None
+        return _Acc(acc.loss + w * e, acc.angle + w * angle, acc.n + w, angle), None
 
     return engine.Reducer(init, update, lambda acc: acc)
 
@@ -172,7 +172,7 @@ def _loss_post(weights: tuple):
 
     def post(res):
         acc: _Acc = res.summary  # runs first: (B, n_windows)
-        cnt = jnp.maximum(acc.count, 1.0)
+        cnt = jnp.maximum(acc.n, 1.0)
         win_loss = (acc.loss / cnt).T  # (n_windows, B)
         win_angle = (acc.angle / cnt).T
         loss = jnp.sum(jnp.asarray(weights, win_loss.dtype) * jnp.mean(win_loss, axis=-1))
@@ -180,7 +180,7 @@ def _loss_post(weights: tuple):
             "window_loss": win_loss,
             "window_angle_deg": win_angle,
             "final_angle_deg": acc.last_angle,
-            "window_count": acc.count[0],
+            "window_count": acc.n[0],
             "final_state": res.state,
         }
         return loss, aux

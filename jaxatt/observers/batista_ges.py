@@ -40,7 +40,7 @@ stands in for m); a missing gyro sample holds the last valid gyro reading.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from typing import NamedTuple, Sequence, Union
 
 import jax
 import jax.numpy as jnp
@@ -48,7 +48,7 @@ import numpy as np
 
 from .. import schedule, so3
 from ..integrate import rk4_step
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -91,16 +91,16 @@ class Params(NamedTuple):
         r_hat_0: initial R^ (3, 3); need not be a rotation.
     """
 
-    ref_nav: jax.Array
-    earth_rate_nav: jax.Array
-    switch_times: jax.Array
-    alpha1: jax.Array
-    alpha2: jax.Array
-    gain_z: jax.Array
-    epsilon: jax.Array
-    x1_0: jax.Array
-    x2_0: jax.Array
-    r_hat_0: jax.Array
+    ref_nav: ArrayLike
+    earth_rate_nav: ArrayLike
+    switch_times: ArrayLike
+    alpha1: ArrayLike
+    alpha2: ArrayLike
+    gain_z: ArrayLike
+    epsilon: ArrayLike
+    x1_0: ArrayLike
+    x2_0: ArrayLike
+    r_hat_0: ArrayLike
 
 
 class Coefficients(NamedTuple):
@@ -319,6 +319,7 @@ def earth_rate_estimate(coef: Coefficients, x1, x2):
 def _dynamics(p: Params, coef: Coefficients, a1, a2, x, u: ImuSample):
     x1, x2, r = x
     wm, m = u.gyr, u.mag
+    assert m is not None  # u is a sample checked by _sanitize
     dx1 = -so3.cross(wm, x1) - x2 + a1 * (m - x1)  # eq. (15), first line
     dx2 = coef.a21 * m - so3.cross(wm - coef.a22 * m, x2) - a2 * (m - x1)  # eq. (15), second line
     we = earth_rate_estimate(coef, x1, x2)
@@ -330,6 +331,8 @@ def _dynamics(p: Params, coef: Coefficients, a1, a2, x, u: ImuSample):
 
 
 def _sanitize(u: ImuSample, gyr_last, x1) -> ImuSample:
+    if u.mag is None:
+        raise ValueError("batista-ges needs the vector measurement: samples with mag (or acc, with vector='acc')")
     gyr_ok = jnp.all(jnp.isfinite(u.gyr))
     mag_ok = jnp.all(jnp.isfinite(u.mag))
     return u._replace(gyr=jnp.where(gyr_ok, u.gyr, gyr_last), mag=jnp.where(mag_ok, u.mag, x1))
@@ -374,6 +377,7 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         return State(t0, x1, p.x2_0, r_hat, r_f, jnp.where(jnp.isfinite(gyr), gyr, 0.0), coef)
 
     def step(p: Params, s: State, sample, dt):
+        u: Union[Interval, ImuSample]
         if isinstance(sample, Interval):
             u = Interval(_sanitize(_get(sample.start), s.gyr_last, s.x1), _sanitize(_get(sample.end), s.gyr_last, s.x1))
             t0, gyr_mid = u.start.t, 0.5 * (u.start.gyr + u.end.gyr)

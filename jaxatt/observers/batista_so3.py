@@ -47,7 +47,7 @@ compare m with m^ vanish); a missing gyro sample holds the last valid gyro readi
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import NamedTuple, Union
 
 import jax
 import jax.numpy as jnp
@@ -55,7 +55,7 @@ import numpy as np
 
 from .. import schedule, so3
 from ..integrate import rk4_step, rkmk4_step
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -98,17 +98,17 @@ class Params(NamedTuple):
         r_hat_0: initial R^ (3, 3), a rotation (body to inertial).
     """
 
-    ref_nav: jax.Array
-    earth_rate_nav: jax.Array
-    switch_times: jax.Array
-    alpha1: jax.Array
-    alpha2: jax.Array
-    alpha0: jax.Array
-    alpha3: jax.Array
-    alpha4: jax.Array
-    m_hat_0: jax.Array
-    v_hat_0: jax.Array
-    r_hat_0: jax.Array
+    ref_nav: ArrayLike
+    earth_rate_nav: ArrayLike
+    switch_times: ArrayLike
+    alpha1: ArrayLike
+    alpha2: ArrayLike
+    alpha0: ArrayLike
+    alpha3: ArrayLike
+    alpha4: ArrayLike
+    m_hat_0: ArrayLike
+    v_hat_0: ArrayLike
+    r_hat_0: ArrayLike
 
 
 class Coefficients(NamedTuple):
@@ -231,6 +231,7 @@ def _schedule(p: Params, t):
 def _rates(p: Params, coef: Coefficients, a1, a2, m_hat, v_hat, r, u: ImuSample):
     """(v^', rotation rate of m^, body rate of R^) of eqs. (9) and (16)."""
     wm, m = u.gyr, u.mag
+    assert m is not None  # u is a sample checked by _sanitize
     mxmh = so3.cross(m, m_hat)
     rate_m = -(wm + coef.c2 * v_hat + a1 * mxmh)  # m^' = rate_m x m^  (eq. 9, first line)
     dv = -so3.cross(wm - coef.c1 * m, v_hat) + a2 * mxmh - p.alpha0 * jnp.dot(m, v_hat) * m  # eq. 9, 2nd line
@@ -246,6 +247,8 @@ def _rates(p: Params, coef: Coefficients, a1, a2, m_hat, v_hat, r, u: ImuSample)
 
 
 def _sanitize(u: ImuSample, gyr_last, m_hat) -> ImuSample:
+    if u.mag is None:
+        raise ValueError("batista-so3 needs the vector measurement: samples with mag (or acc, with vector='acc')")
     gyr_ok = jnp.all(jnp.isfinite(u.gyr))
     mag_ok = jnp.all(jnp.isfinite(u.mag))
     return u._replace(gyr=jnp.where(gyr_ok, u.gyr, gyr_last), mag=jnp.where(mag_ok, u.mag, m_hat))
@@ -286,6 +289,7 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         )
 
     def step(p: Params, s: State, sample, dt):
+        u: Union[Interval, ImuSample]
         if isinstance(sample, Interval):
             u = Interval(
                 _sanitize(_get(sample.start), s.gyr_last, s.m_hat), _sanitize(_get(sample.end), s.gyr_last, s.m_hat)
@@ -309,12 +313,12 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
             m_hat = m_hat * (s.m_norm / jnp.linalg.norm(m_hat))
         else:
 
-            def f(x, uu):
+            def f_rk4(x, uu):
                 m_hat, v_hat, r = x
                 dv, rate_m, omega_o = _rates(p, s.coef, a1, a2, m_hat, v_hat, r, uu)
                 return so3.cross(rate_m, m_hat), dv, so3.mm(r, so3.skew(omega_o))
 
-            m_hat, v_hat, r = rk4_step(f, (s.m_hat, s.v_hat, s.r), u, dt)
+            m_hat, v_hat, r = rk4_step(f_rk4, (s.m_hat, s.v_hat, s.r), u, dt)
         t1 = t0 + dt
         we = s.coef.c1 * m_now - s.coef.c2 * v_hat
         return State(t1, m_hat, v_hat, r, gyr_new, s.m_norm, s.coef), Out(t1, m_hat, v_hat, we, r)

@@ -60,7 +60,7 @@ last valid gyro reading. :class:`Out` reports which measurements were used and w
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from typing import List, NamedTuple, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -68,7 +68,7 @@ import numpy as np
 
 from .. import frames, so3
 from ..integrate import input_at, rk4_step, rkmk4_step
-from ..types import ImuSample, Interval, Observer, VectorSample
+from ..types import ArrayLike, ImuSample, Interval, Observer, VectorSample
 from . import registry
 
 __all__ = [
@@ -114,13 +114,13 @@ class Params(NamedTuple):
         ref_body:     (n2, 3) constant body-fixed references b̊_j, used when the sample carries none.
     """
 
-    k: jax.Array
-    l: jax.Array
-    k_i: jax.Array
-    r_hat_0: jax.Array
-    bias_0: jax.Array
-    ref_inertial: jax.Array
-    ref_body: jax.Array
+    k: ArrayLike
+    l: ArrayLike
+    k_i: ArrayLike
+    r_hat_0: ArrayLike
+    bias_0: ArrayLike
+    ref_inertial: ArrayLike
+    ref_body: ArrayLike
 
 
 class State(NamedTuple):
@@ -272,7 +272,8 @@ def imu_params(
     if frame not in ("NED", "ENU"):
         raise ValueError(f"frame must be 'NED' or 'ENU', got {frame!r}")
     fields = tuple(fields)
-    refs, gains = [], []
+    refs: List[ArrayLike] = []
+    gains: List[ArrayLike] = []
     for f in fields:
         if f == "acc":
             refs.append(UP_NED if frame == "NED" else UP_ENU)
@@ -467,6 +468,7 @@ def _clean(v, ok):
 
 def _prepare(u, p: Params, gyr_last, imu_fields):
     """Cleaned step input (plain or Interval), effective gains, diagnostics, start time, new gyr_last."""
+    ends: Tuple[VectorSample, ...]
     if isinstance(u, Interval):
         s, e = _as_vector_sample(u.start, p, imu_fields), _as_vector_sample(u.end, p, imu_fields)
         ok_a = _row_ok(s.body_meas, s.ref_inertial, e.body_meas, e.ref_inertial)
@@ -550,12 +552,12 @@ def _make_observer(form: str, imu_fields: tuple, normalize: bool) -> Observer:
             sigma0 = correction_matrix(s.r, input_at(x, 0.0), k, l, normalize)
         else:
 
-            def f(y, u):
+            def f_quat(y, u):
                 qq, b = y
                 sig = correction_quaternion(qq, u, k, l, normalize)
                 return 0.5 * so3.quat_multiply(qq, _pure(u.gyr - b + sig)), -p.k_i * sig  # eq. (17)/(18)
 
-            q, bias = rk4_step(f, (s.q, s.bias), x, dt)
+            q, bias = rk4_step(f_quat, (s.q, s.bias), x, dt)
             q = q / jnp.linalg.norm(q)
             r = so3.quat_to_matrix(q)
             sigma0 = correction_quaternion(s.q, input_at(x, 0.0), k, l, normalize)

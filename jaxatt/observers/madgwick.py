@@ -71,7 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ImuSample, Observer
+from ..types import ArrayLike, ImuSample, Observer
 from . import registry
 from .mahony import nwu_to_enu, quat_from_acc_mag_triad, start_quaternion, step_inputs
 
@@ -99,7 +99,7 @@ class Params(NamedTuple):
         beta: gain of the normalised gradient step, eq. (33) (rad/s), > 0.
     """
 
-    beta: jax.Array
+    beta: ArrayLike
 
 
 class State(NamedTuple):

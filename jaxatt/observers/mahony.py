@@ -81,7 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -112,8 +112,8 @@ class Params(NamedTuple):
         ki: integral gain Ki (1/s^2), >= 0 (0 disables bias estimation).
     """
 
-    kp: jax.Array
-    ki: jax.Array
+    kp: ArrayLike
+    ki: ArrayLike
 
 
 class State(NamedTuple):

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -68,15 +68,15 @@ class Params(NamedTuple):
         p0: initial covariance (6, 6) of [dtheta (rad); db (rad/s)], SPD.
     """
 
-    acc_ref_nav: jax.Array
-    mag_ref_nav: jax.Array
-    gyro_noise_std: jax.Array
-    bias_rw: jax.Array
-    r_acc: jax.Array
-    r_mag: jax.Array
-    r_hat_0: jax.Array
-    b_hat_0: jax.Array
-    p0: jax.Array
+    acc_ref_nav: ArrayLike
+    mag_ref_nav: ArrayLike
+    gyro_noise_std: ArrayLike
+    bias_rw: ArrayLike
+    r_acc: ArrayLike
+    r_mag: ArrayLike
+    r_hat_0: ArrayLike
+    b_hat_0: ArrayLike
+    p0: ArrayLike
 
 
 class State(NamedTuple):
@@ -229,6 +229,8 @@ def make_observer() -> Observer:
         return State(jnp.asarray(sample.t, dtype), _qnorm(q0), p.b_hat_0, p.p0, jnp.where(_finite(gyr), gyr, 0.0))
 
     def measure(p, q, b, cov, u: ImuSample):
+        if u.acc is None or u.mag is None:
+            raise ValueError("mekf needs accelerometer and magnetometer samples (acc and mag)")
         q, b, cov = update(q, b, cov, jnp.where(_finite(u.acc), u.acc, 0.0), p.acc_ref_nav, p.r_acc, _finite(u.acc))
         return update(q, b, cov, jnp.where(_finite(u.mag), u.mag, 0.0), p.mag_ref_nav, p.r_mag, _finite(u.mag))
 

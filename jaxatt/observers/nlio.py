@@ -57,7 +57,7 @@ propagates; NLO: the measurement is replaced by R^s^T v_i^N); a missing gyro sam
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Optional
+from typing import Any, Dict, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -65,7 +65,7 @@ import numpy as np
 
 from .. import so3
 from ..integrate import input_at, rk4_step
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -110,23 +110,23 @@ class Params(NamedTuple):
         q_scale: multiplies Q (NLIO-TV; 1 = literal).
     """
 
-    acc_ref_nav: jax.Array
-    mag_ref_nav: jax.Array
-    kp: jax.Array
-    kv: jax.Array
-    theta: jax.Array
-    bias_bound: jax.Array
-    bias_max: jax.Array
-    r_hat_0: jax.Array
-    b_hat_0: jax.Array
-    k1: jax.Array
-    k2: jax.Array
-    gyro_noise_std: jax.Array
-    r_acc: jax.Array
-    r_mag: jax.Array
-    p0_acc: jax.Array
-    p0_mag: jax.Array
-    q_scale: jax.Array
+    acc_ref_nav: ArrayLike
+    mag_ref_nav: ArrayLike
+    kp: ArrayLike
+    kv: ArrayLike
+    theta: ArrayLike
+    bias_bound: ArrayLike
+    bias_max: ArrayLike
+    r_hat_0: ArrayLike
+    b_hat_0: ArrayLike
+    k1: ArrayLike
+    k2: ArrayLike
+    gyro_noise_std: ArrayLike
+    r_acc: ArrayLike
+    r_mag: ArrayLike
+    p0_acc: ArrayLike
+    p0_mag: ArrayLike
+    q_scale: ArrayLike
 
 
 class State(NamedTuple):
@@ -424,6 +424,8 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
         )
 
     def sanitize(u: ImuSample, gyr_last):
+        if u.acc is None or u.mag is None:
+            raise ValueError(f"{variant} needs accelerometer and magnetometer samples (acc and mag)")
         ok1, ok2 = _finite(u.acc), _finite(u.mag)
         # NaN-free stand-ins; the masks switch the corresponding corrections off.
         return (
@@ -454,6 +456,7 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
         zero = jnp.zeros((3, 3), dtype)
         k1 = k2 = p1 = p2 = None
         if tv:
+            assert s.p1 is not None and s.p2 is not None  # init() sets P_1, P_2 for NLIO-TV
             k1d, p1 = kalman_gain(s.p1, p.r_acc)
             k2d, p2 = kalman_gain(s.p2, p.r_mag)
             k1d, p1 = jnp.where(ok1, k1d, zero), jnp.where(ok1, p1, s.p1)
@@ -474,6 +477,7 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
                 y1, y2 = v1, v2
             else:
                 dv1 = dv2 = jnp.zeros_like(v1)
+                assert uu.acc is not None and uu.mag is not None  # u is a sample checked by sanitize()
                 rst = jnp.swapaxes(jnp.clip(r_hat, -1.0, 1.0), -1, -2)
                 y1 = jnp.where(ok1, uu.acc, so3.mv(rst, p.acc_ref_nav))
                 y2 = jnp.where(ok2, uu.mag, so3.mv(rst, p.mag_ref_nav))
@@ -507,7 +511,11 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
         Kalman update)."""
         if not aux:
             return Out(s.t, rotation_of(s.r_hat), s.r_hat, s.b_hat, None, None, None, None)
-        k1, k2 = (jnp.zeros_like(s.p1), jnp.zeros_like(s.p2)) if tv else (p.k1, p.k2)
+        if tv:
+            assert s.p1 is not None and s.p2 is not None  # init() sets P_1, P_2 for NLIO-TV
+            k1, k2 = jnp.zeros_like(s.p1), jnp.zeros_like(s.p2)
+        else:
+            k1, k2 = p.k1, p.k2
         return Out(s.t, rotation_of(s.r_hat), s.r_hat, s.b_hat, s.v1, s.v2, k1, k2)
 
     return Observer(init=init, step=step, name=variant, output=output)
@@ -553,7 +561,7 @@ _G_TV = (
     registry.Gain("r_acc", "(m/s^2)^2", "accelerometer noise covariance R_1 (NLIO-TV), 3x3 SPD", "spd"),
     registry.Gain("r_mag", "unit^2", "magnetometer noise covariance R_2 (NLIO-TV), 3x3 SPD", "spd"),
 )
-_COMMON = dict(
+_COMMON: Dict[str, Any] = dict(
     reference="sensors2020 (nonlinear interconnected observer with gyro-bias estimation), eqs. (10)-(14), "
     "(17), (28)-(30)",
     default_params=_recorded_defaults,

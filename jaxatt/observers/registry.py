@@ -19,7 +19,7 @@ it to the frame asked for.
 from __future__ import annotations
 
 import importlib
-from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple, Union
 
 import jax.numpy as jnp
 
@@ -152,7 +152,7 @@ def names(recorded: Optional[bool] = None) -> Tuple[str, ...]:
     return tuple(n for n in all_names if get(n).recorded == recorded)
 
 
-def get(name: str) -> Entry:
+def get(name: Union[str, Entry]) -> Entry:
     """The :class:`Entry` of ``name`` (ValueError listing the registered names)."""
     if isinstance(name, Entry):
         return name
@@ -169,7 +169,7 @@ def get(name: str) -> Entry:
 
 def markdown_table() -> str:
     """The table of the registered observers (name, module, reference, summary) in Markdown: the README's
-    observers table is this text (``python docs/build_api.py`` writes it there)."""
+    observers table is this text (``tests/test_docs.py`` checks it)."""
     rows = ["| name | module | reference | what it estimates |", "|---|---|---|---|"]
     for n in INDEX:
         e = get(n)

@@ -67,7 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer
 from . import registry
 
 __all__ = [
@@ -115,24 +115,24 @@ class Params(NamedTuple):
         bias_max: bound on each bias component (rad/s).
     """
 
-    tau_acc: jax.Array
-    tau_acc_2: jax.Array
-    tau_mag: jax.Array
-    tau_bias: jax.Array
-    tau_bias_rest: jax.Array
-    tau_rest: jax.Array
-    rest_hold: jax.Array
-    rest_th_gyr: jax.Array
-    rest_th_acc: jax.Array
-    acc_th: jax.Array
-    acc_hold: jax.Array
-    mag_norm_th: jax.Array
-    mag_dip_th: jax.Array
-    mag_hold: jax.Array
-    tau_mag_ref: jax.Array
-    gravity: jax.Array
-    gate_sharpness: jax.Array
-    bias_max: jax.Array
+    tau_acc: ArrayLike
+    tau_acc_2: ArrayLike
+    tau_mag: ArrayLike
+    tau_bias: ArrayLike
+    tau_bias_rest: ArrayLike
+    tau_rest: ArrayLike
+    rest_hold: ArrayLike
+    rest_th_gyr: ArrayLike
+    rest_th_acc: ArrayLike
+    acc_th: ArrayLike
+    acc_hold: ArrayLike
+    mag_norm_th: ArrayLike
+    mag_dip_th: ArrayLike
+    mag_hold: ArrayLike
+    tau_mag_ref: ArrayLike
+    gravity: ArrayLike
+    gate_sharpness: ArrayLike
+    bias_max: ArrayLike
 
 
 PARAM_NAMES = Params._fields
@@ -752,7 +752,10 @@ _BOUNDS = dict(
 
 
 def _param_docs() -> dict:
-    lines = Params.__doc__.split("Fields:")[1].strip().splitlines()
+    doc = Params.__doc__ or ""
+    if "Fields:" not in doc:  # docstrings stripped (python -OO)
+        return dict.fromkeys(PARAM_NAMES, "")
+    lines = doc.split("Fields:")[1].strip().splitlines()
     docs, name = {}, None
     for ln in lines:
         head = ln.strip().split(":", 1)

@@ -40,7 +40,7 @@ from jax.scipy.special import ndtri
 from .. import so3
 from ..integrate import magnus4_step
 from ..types import ImuSample
-from .trajectories import SinusoidRates
+from .trajectories import RateProfile, SinusoidRates
 
 __all__ = [
     "AhrsScenario",
@@ -125,7 +125,7 @@ class AhrsScenario(NamedTuple):
         noise_scale: multiplies every noise (0 = noise-free).
     """
 
-    rates: object
+    rates: RateProfile
     r0: jax.Array
     acc_ref_nav: jax.Array
     mag_ref_nav: jax.Array
@@ -141,7 +141,10 @@ class AhrsScenario(NamedTuple):
     burst_scale: jax.Array
     noise_scale: jax.Array
 
-    n_channels = N_CHANNELS  # standard-normal numbers drawn per sample (simulator interface)
+    @property
+    def n_channels(self) -> int:
+        """Standard-normal numbers drawn per sample (simulator interface): :data:`N_CHANNELS`."""
+        return N_CHANNELS
 
     @classmethod
     def make(

@@ -24,6 +24,7 @@ import numpy as np
 from .. import so3
 from ..integrate import magnus4_step
 from ..types import ImuSample
+from .trajectories import RateProfile
 
 __all__ = [
     "ImuScenario",
@@ -61,7 +62,7 @@ class ImuScenario(NamedTuple):
         noise_scale: multiplies every noise (0 = noise-free).
     """
 
-    rates: object
+    rates: RateProfile
     r0: jax.Array
     earth_rate_nav: jax.Array
     ref_nav: jax.Array
@@ -71,7 +72,10 @@ class ImuScenario(NamedTuple):
     noise_scale: jax.Array
 
     # The simulator interface used by jaxatt.montecarlo (any scenario type providing these plugs in):
-    n_channels = N_CHANNELS  # standard-normal numbers drawn per sample
+    @property
+    def n_channels(self) -> int:
+        """Standard-normal numbers drawn per sample: gyro (3), then the vector sensor (3)."""
+        return N_CHANNELS
 
     def truth_at(self, r, t) -> "Truth":
         """True quantities at time ``t`` (s) for the attitude ``r`` (body to nav)."""

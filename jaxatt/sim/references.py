@@ -39,8 +39,8 @@ import numpy as np
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..types import VectorSample
-from .trajectories import SinusoidRates
+from ..types import ArrayLike, VectorSample
+from .trajectories import RateProfile, SinusoidRates
 
 __all__ = [
     "Directions",
@@ -71,11 +71,11 @@ class Directions(NamedTuple):
     Shapes: v_a, v_b, axis (n, 3); rate, half_period (n,).
     """
 
-    v_a: jax.Array
-    v_b: jax.Array
-    axis: jax.Array
-    rate: jax.Array
-    half_period: jax.Array
+    v_a: ArrayLike
+    v_b: ArrayLike
+    axis: ArrayLike
+    rate: ArrayLike
+    half_period: ArrayLike
 
     @property
     def n(self) -> int:
@@ -133,13 +133,13 @@ class VectorScenario(NamedTuple):
         meas_noise_std: white noise added to each measured vector per sample (unit vectors, so ~rad), ().
     """
 
-    rates: object
-    r0: jax.Array
+    rates: RateProfile
+    r0: ArrayLike
     ref_inertial: Directions
     ref_body: Directions
-    gyro_bias: jax.Array
-    gyro_noise_std: jax.Array
-    meas_noise_std: jax.Array
+    gyro_bias: ArrayLike
+    gyro_noise_std: ArrayLike
+    meas_noise_std: ArrayLike
 
     @property
     def n_body(self) -> int:
@@ -255,6 +255,11 @@ _DOC_COMMON = """
     ``meas_noise_std`` (per component, on unit vectors), ``dtype``."""
 
 
+def _add_doc_common(fn) -> None:
+    if fn.__doc__:  # None under python -OO
+        fn.__doc__ += _DOC_COMMON
+
+
 def rotating_reference(rate_deg_s: float = 30.0, tilt_deg: float = 60.0, **kw) -> VectorScenario:
     """(a) One inertial direction on a cone of half-angle ``tilt_deg`` about the inertial z axis, turning at
     ``rate_deg_s``: å(t) = Rz(rate t) (sin tilt, 0, cos tilt). Persistently exciting for tilt in (0, 180)
@@ -273,7 +278,7 @@ def rotating_reference(rate_deg_s: float = 30.0, tilt_deg: float = 60.0, **kw) -
     return _scenario(d, _NONE, rates, **c)
 
 
-rotating_reference.__doc__ += _DOC_COMMON
+_add_doc_common(rotating_reference)
 
 
 def switching_reference(half_period_s: float = 5.0, angle_deg: float = 90.0, **kw) -> VectorScenario:
@@ -295,7 +300,7 @@ def switching_reference(half_period_s: float = 5.0, angle_deg: float = 90.0, **k
     return _scenario(d, _NONE, rates, **c)
 
 
-switching_reference.__doc__ += _DOC_COMMON
+_add_doc_common(switching_reference)
 
 
 def constant_reference(direction=(0.0, 0.0, 1.0), **kw) -> VectorScenario:
@@ -307,7 +312,7 @@ def constant_reference(direction=(0.0, 0.0, 1.0), **kw) -> VectorScenario:
     return _scenario(constant_directions(direction), _NONE, rates, **c)
 
 
-constant_reference.__doc__ += _DOC_COMMON
+_add_doc_common(constant_reference)
 
 
 def two_constant_references(angle_deg: float = 60.0, **kw) -> VectorScenario:
@@ -320,7 +325,7 @@ def two_constant_references(angle_deg: float = 60.0, **kw) -> VectorScenario:
     return _scenario(constant_directions([[0.0, 0.0, 1.0], [np.sin(a), 0.0, np.cos(a)]]), _NONE, rates, **c)
 
 
-two_constant_references.__doc__ += _DOC_COMMON
+_add_doc_common(two_constant_references)
 
 
 def body_fixed_reference(
@@ -337,7 +342,7 @@ def body_fixed_reference(
     return _scenario(_NONE, constant_directions(direction), rates, **c)
 
 
-body_fixed_reference.__doc__ += _DOC_COMMON
+_add_doc_common(body_fixed_reference)
 
 
 def _no_extra(kw):

@@ -1,18 +1,24 @@
 """Angular-velocity profiles with exact omega(t), and the true attitude they generate.
 
-A profile is any pytree with ``rate(t) -> omega`` (rad/s, body frame); :class:`SinusoidRates` covers the
-papers' profiles, :class:`FunctionRates` wraps a user function of t.
+A profile is any pytree with ``rate(t) -> omega`` (rad/s, body frame; the type :class:`RateProfile`);
+:class:`SinusoidRates` covers the papers' profiles, :class:`FunctionRates` wraps a user function of t.
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["SinusoidRates", "FunctionRates", "batista_slow", "batista_aggressive"]
+__all__ = ["RateProfile", "SinusoidRates", "FunctionRates", "batista_slow", "batista_aggressive"]
+
+
+class RateProfile(Protocol):
+    """An angular-velocity profile: any pytree with ``rate(t)``, the body angular velocity (rad/s) at ``t`` (s)."""
+
+    def rate(self, t) -> Any: ...
 
 
 class SinusoidRates(NamedTuple):

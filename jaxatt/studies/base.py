@@ -259,7 +259,7 @@ def reproduce(
     published = study.published(cfg)
     why = study.comparable(cfg)
     n_steps = int(round(cfg.duration / cfg.dt))
-    payload = {
+    payload: Dict[str, Any] = {
         "experiment": title or f"{study.name} reproduce",
         "study": study.name,
         "paper_reference": study.paper,

@@ -5,7 +5,7 @@ units: nT, rad/s, s (errors in the units of Table 2)."""
 from __future__ import annotations
 
 import sys
-from typing import NamedTuple, Optional, Sequence
+from typing import TYPE_CHECKING, NamedTuple, Optional, Sequence, Union
 
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +14,9 @@ from .. import so3
 from ..observers import batista_ges as ges
 from ..sim import earth, imu, trajectories
 from . import base
+
+if TYPE_CHECKING:
+    from . import batista_so3
 
 NAME = "batista-ges"
 DURATION = 3600.0  # s
@@ -71,7 +74,7 @@ class Config(NamedTuple):
     window_start: float = WINDOW_START
 
 
-def scenario(cfg: Config) -> imu.ImuScenario:
+def scenario(cfg: Union[Config, batista_so3.Config]) -> imu.ImuScenario:
     """Section IV: R(0) = I, NED at the given latitude, IGRF-11 field, KVH DSP-3000 gyro, 150 nT magnetometer."""
     if cfg.trajectory not in ("slow", "aggressive"):
         raise ValueError(f"trajectory must be 'slow' or 'aggressive', got {cfg.trajectory!r}")

@@ -82,8 +82,9 @@ check_params = comp.check_params
 
 
 def notes(cfg: Config):
+    doc = refs.SCENARIOS[cfg.scenario.replace("-", "_")].__doc__ or ""  # None under python -OO
     return [
-        f"scenario {cfg.scenario}: {refs.SCENARIOS[cfg.scenario.replace('-', '_')].__doc__.strip().splitlines()[0]}",
+        f"scenario {cfg.scenario}: {next(iter(doc.strip().splitlines()), '')}",
         f"form {cfg.form} (eq. {'10' if cfg.form == 'matrix' else '18'}), gain {cfg.gain} 1/s, k_I {cfg.k_i} 1/s",
         f"sensor samples: {'held over each step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
     ]

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Dict, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -146,7 +146,7 @@ CASES: Dict[str, Config] = {
 _T = ("Transient (0-200 s)", "Steady-State (300-500 s)")
 #: Published tables, as printed: PAPER[case][metric][observer] = (roll, pitch, yaw transient, roll, pitch, yaw
 #: steady), deg, by the column labels. The RMSE columns are read as (roll, yaw, pitch): use :func:`paper_values`.
-PAPER = {
+PAPER: Dict[str, Dict[str, Any]] = {
     "case1": {
         "table": {"mae": "Table 1", "rmse": "Table 2"},
         "mae": {
@@ -310,6 +310,7 @@ def params(cfg: Config, name: str, dtype=None):
             p0_bias=cfg.mekf_p0_bias,
             dtype=dtype,
         )
+    assert kp_field is not None  # only MEKF (returned above) has none in _OBSERVERS
     return nlio_mod.default_params(
         acc_ref,
         cfg.mag_ref_nav,
