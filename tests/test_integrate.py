@@ -317,20 +317,19 @@ def test_rkmk4_coupled_sphere_and_rotation_is_fourth_order_and_norm_preserving()
     x0, v0, r0 = jnp.array([0.3]), jnp.array([1.0, -2.0, 0.5]), so3.exp(jnp.array([0.3, -0.2, 0.9]))
     T = 2.0
 
-    def solve_lie(n):
+    def solve(step, y0, n):  # n steps of ``step`` over [0, T], one compiled scan
         dt = T / n
-        y = (x0, (v0, r0))
-        for k in range(n):
-            t0 = k * dt
-            x, fr = rkmk4_step(f_lie, y[0], y[1], Interval(t0, t0 + dt), dt)
-            y = (x, fr)
-        return y
 
-    ref = (x0, v0, r0)
-    nf = 4000
-    for k in range(nf):
-        t0 = k * T / nf
-        ref = rk4_step(f_flat, ref, Interval(t0, t0 + T / nf), T / nf)
+        def body(y, k):
+            t0 = k * dt
+            return step(y, Interval(t0, t0 + dt), dt), None
+
+        return jax.jit(lambda y: jax.lax.scan(body, y, jnp.arange(n, dtype=jnp.float64))[0])(y0)
+
+    def solve_lie(n):
+        return solve(lambda y, u, dt: rkmk4_step(f_lie, y[0], y[1], u, dt), (x0, (v0, r0)), n)
+
+    ref = solve(lambda y, u, dt: rk4_step(f_flat, y, u, dt), (x0, v0, r0), 4000)
     errs = []
     for n in (20, 40):
         x, (v, r) = solve_lie(n)
