@@ -1,4 +1,18 @@
-"""Shared pytest setup for jaxatt. Float64 everywhere: several tests check accuracy at 1e-9..1e-12."""
+"""Shared pytest setup for jaxatt.
+
+* Float64 everywhere: several tests check accuracy at 1e-9..1e-12.
+* One XLA compilation cache for the whole test run (``.pytest_cache/xla`` unless ``JAX_COMPILATION_CACHE_DIR`` is
+  set): the xdist workers and the CLI subprocesses that the tests start compile many of the same programs
+  (the batista-so3 Monte Carlo, the tuning gradients), and XLA reuses an executable whose HLO, compile options,
+  backend and jax version are identical. The cache changes no number a test sees, only how often the same
+  program is compiled.
+"""
+
+import os
+from pathlib import Path
+
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "xla"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
 import jax
 
