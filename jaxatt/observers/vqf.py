@@ -887,11 +887,12 @@ _GAINS_6D = (
         True,
         (0.05, 30.0),
     ),
+    registry.Gain("bias_sigma_init", "deg/s", "initial bias sigma, Section 4.1", "positive", True, (1e-3, 10.0)),
     registry.Gain(
-        "bias_sigma_motion", "deg/s", "bias measurement sigma in motion, Section 4.2", "positive", False, (1e-3, 10.0)
+        "bias_sigma_motion", "deg/s", "bias measurement sigma in motion, Section 4.2", "positive", True, (1e-3, 10.0)
     ),
     registry.Gain(
-        "bias_sigma_rest", "deg/s", "bias measurement sigma at rest, Section 4.3", "positive", False, (1e-4, 10.0)
+        "bias_sigma_rest", "deg/s", "bias measurement sigma at rest, Section 4.3", "positive", True, (1e-4, 10.0)
     ),
     registry.Gain("bias_forgetting_time", "s", "bias variance growth time, Section 4.1", "positive", False, (1.0, 1e4)),
 )
