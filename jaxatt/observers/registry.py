@@ -139,6 +139,8 @@ INDEX: Dict[str, str] = {
     "nlio-fg": "nlio",
     "nlio": "nlio",
     "robust": "robust_ahrs",
+    "vqf": "vqf",
+    "vqf-6d": "vqf",
 }
 
 _EXTRA: Dict[str, Entry] = {}

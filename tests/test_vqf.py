@@ -1,0 +1,149 @@
+"""VQF (jaxatt.observers.vqf) against the ``vqf`` package's C++ filter ``vqf.VQF`` on every BROAD trial.
+
+What is compared: the whole of every trial in the BROAD folder (20 trials, 47639-60861 samples each at 285.7 Hz,
+1.09 M samples), default parameters, float64, jaxatt's first update made over the data's sampling time
+(``ts0 = 1/rate``; the package's first ``update`` uses its Ts). Per sample: the quaternion (9D: ``getQuat9D``
+vs the "vqf" observer's ``Out.q``; 6D: ``getQuat6D`` vs "vqf-6d"'s), the rest flag, the magnetic disturbance
+flag (9D) and the gyro-bias estimate (``updateBatch``'s ``quat9D`` / ``quat6D`` / ``restDetected`` /
+``magDistDetected`` / ``bias``, the per-sample values of ``getQuat*``, ``getRestDetected``,
+``getMagDistDetected`` and ``getBiasEstimate``). Measured: largest angle of q_jax^-1 q_vqf over all samples
+2.7e-12 rad (9D) and 2.2e-12 rad (6D); per-trial RMS <= 1e-12 rad; the flags agree on every sample; the bias
+within 1e-14 rad/s. The trials run as one vmapped batch (zero-padded to the longest; a zero acc / mag sample is
+skipped, as in the package, and nothing after a trial's end is compared), one compilation per mode.
+
+The package is in the test extra (``pip install ".[test]"``): without it these tests skip, except under CI=true.
+"""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxatt
+from jaxatt import montecarlo
+from jaxatt.data import broad
+from jaxatt.observers import registry, vqf
+from jaxatt.types import ImuSample
+
+try:
+    import vqf as vqf_package
+except ImportError:  # the comparison needs the test extra (pip install ".[test]")
+    if os.environ.get("CI", "").lower() == "true":
+        raise
+    vqf_package = pytest.importorskip("vqf")
+
+from broad_data import DATA, need_data  # noqa: E402
+
+
+def qangle(a, b):
+    """Angle (rad) of a^-1 (x) b, accurate near 0 (atan2 of the vector part's norm and |w|)."""
+    aw, av, bw, bv = a[..., 0], a[..., 1:], b[..., 0], b[..., 1:]
+    w = aw * bw + np.sum(av * bv, -1)
+    v = aw[..., None] * bv - bw[..., None] * av - np.cross(av, bv)
+    return 2 * np.arctan2(np.linalg.norm(v, axis=-1), np.abs(w))
+
+
+@pytest.fixture(scope="module")
+def batch():
+    """Every BROAD trial, zero-padded to the longest: (names, lengths, dt, ImuSample (B, L, ...))."""
+    need_data()
+    trials = broad.load(DATA)
+    assert len(trials) == len(list(DATA.glob("*.hdf5"))) and len(trials) >= 20
+    rates = {float(tr.rate_hz) for tr in trials}
+    assert len(rates) == 1, rates
+    dt = 1.0 / rates.pop()
+    lens = [len(tr.samples.gyr) for tr in trials]
+    n = max(lens)
+
+    def pad(x):
+        x = np.asarray(x, np.float64)
+        return np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:])])
+
+    s = ImuSample(
+        np.tile(np.arange(n) * dt, (len(trials), 1)),
+        *(np.stack([pad(getattr(tr.samples, f)) for tr in trials]) for f in ("gyr", "acc", "mag")),
+    )
+    return [tr.name for tr in trials], lens, dt, s
+
+
+def run_batch(mode, params, s, dt):
+    run = montecarlo.log_runner(vqf.make_observer(mode), "next")
+    return jax.vmap(run, in_axes=(None, 0, None))(params, s, dt)
+
+
+def package_run(gyr, acc, mag, dt):
+    f = vqf_package.VQF(dt)
+    return f.updateBatch(*(None if x is None else np.ascontiguousarray(x) for x in (gyr, acc, mag)))
+
+
+@pytest.mark.parametrize("mode", ["9d", "6d"])
+def test_matches_vqf_package_on_every_broad_trial(batch, mode):
+    names, lens, dt, s = batch
+    p = vqf.default_params(ts0=dt)
+    out = run_batch(mode, p, s, dt)
+    q = np.asarray(out.q)
+    assert q.dtype == np.float64
+    worst = 0.0
+    for i, (name, n) in enumerate(zip(names, lens)):
+        ref = package_run(s.gyr[i, :n], s.acc[i, :n], s.mag[i, :n] if mode == "9d" else None, dt)
+        qr = ref["quat9D"] if mode == "9d" else ref["quat6D"]
+        a = qangle(q[i, :n], qr)
+        rms = float(np.sqrt(np.mean(a**2)))
+        worst = max(worst, float(a.max()))
+        assert rms <= 1e-6 and a.max() <= 1e-6, (name, mode, rms, a.max())
+        np.testing.assert_array_equal(np.asarray(out.rest_detected[i, :n]) > 0.5, ref["restDetected"], err_msg=name)
+        assert 0.2 < ref["restDetected"].mean() < 0.6  # both states occur
+        np.testing.assert_allclose(np.asarray(out.bias[i, :n]), ref["bias"], rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(np.asarray(out.bias_sigma[i, :n]), ref["biasSigma"], rtol=1e-9, err_msg=name)
+        if mode == "9d":
+            np.testing.assert_array_equal(
+                np.asarray(out.mag_dist_detected[i, :n]) > 0.5, ref["magDistDetected"], err_msg=name
+            )
+            np.testing.assert_allclose(np.asarray(out.q6d[i, :n]), ref["quat6D"], rtol=0, atol=1e-9, err_msg=name)
+    assert worst < 1e-10, worst  # measured 2.7e-12 rad
+    if mode == "9d":
+        # The smooth relaxation (smooth > 0) tends to the exact filter.
+        for temp, bound in SMOOTH_BOUNDS:
+            out_s = run_batch(mode, p._replace(smooth=jnp.asarray(temp)), s, dt)
+            d = max(float(qangle(np.asarray(out_s.q[i, :n]), q[i, :n]).max()) for i, n in enumerate(lens))
+            print(f"smooth={temp}: max angle to the exact filter {d:.3g} rad")
+            assert d <= bound, (temp, d)
+
+
+#: (smooth temperature, bound on the largest angle (rad) between the smooth and the exact filter over all trials)
+SMOOTH_BOUNDS = ((1e-3, 1.0),)
+
+
+def test_registry_entries_and_filter_frames(batch):
+    names, lens, dt, s = batch
+    for name, mode in (("vqf", "9d"), ("vqf-6d", "6d")):
+        e = registry.get(name)
+        assert e.module == "vqf" and e.frame == "ENU" and e.hold == "next" and e.setup is None
+        assert registry.recorded_observer(name) is vqf.make_observer(mode)
+        assert e.gain("tau_acc").tuned
+    assert registry.get("vqf").gain("tau_mag").tuned and registry.get("vqf-6d").needs == ("acc",)
+    # jaxatt.filter gives the package's sensor-to-ENU quaternion (the first 3000 samples of trial 0).
+    n = 3000
+    gyr, acc, mag = (np.asarray(x[0, :n]) for x in (s.gyr, s.acc, s.mag))
+    est = jaxatt.filter("vqf", gyr, acc, mag, dt=dt, params=vqf.default_params(ts0=dt))
+    assert est.frame == "ENU"
+    ref = package_run(gyr, acc, mag, dt)
+    assert qangle(np.asarray(est.quat), ref["quat9D"]).max() < 1e-10
+    # ENU: the horizontal field points north (+y) after the estimate's rotation.
+    m_enu = np.einsum("nij,nj->ni", np.asarray(jaxatt.so3.quat_to_matrix(jnp.asarray(est.quat))), mag)
+    assert np.median(np.abs(np.arctan2(m_enu[n // 2 :, 0], m_enu[n // 2 :, 1]))) < 0.05
+
+
+def test_check_params():
+    vqf.check_params(vqf.default_params())
+    for field, bad in (("tau_acc", 0.0), ("tau_mag", np.nan), ("rest_bias_est_enabled", 0.5), ("smooth", -1.0)):
+        with pytest.raises(ValueError, match=field):
+            vqf.check_params(vqf.default_params(**{field: bad}))
+    with pytest.raises(ValueError, match="unknown"):
+        vqf.default_params(tauAcc=1.0)
+    assert set(vqf.PACKAGE_NAMES.values()) == set(vqf_package.VQF(0.01).params)
+    assert {k: float(v) for k, v in vqf_package.VQF(0.01).params.items()} == {
+        vqf.PACKAGE_NAMES[f]: float(getattr(vqf.default_params(), f)) for f in vqf.PACKAGE_NAMES
+    }
