@@ -104,7 +104,7 @@ def test_matches_vqf_package_on_every_broad_trial(batch, mode):
             np.testing.assert_allclose(np.asarray(out.q6d[i, :n]), ref["quat6D"], rtol=0, atol=1e-9, err_msg=name)
     assert worst < 1e-10, worst  # measured 2.7e-12 rad
     if mode == "9d":
-        # The smooth relaxation (smooth > 0) tends to the exact filter.
+        # The smooth relaxation (smooth > 0) tends to the exact filter: close at 1e-3, equal at 1e-7.
         for temp, bound in SMOOTH_BOUNDS:
             out_s = run_batch(mode, p._replace(smooth=jnp.asarray(temp)), s, dt)
             d = max(float(qangle(np.asarray(out_s.q[i, :n]), q[i, :n]).max()) for i, n in enumerate(lens))
@@ -112,8 +112,10 @@ def test_matches_vqf_package_on_every_broad_trial(batch, mode):
             assert d <= bound, (temp, d)
 
 
-#: (smooth temperature, bound on the largest angle (rad) between the smooth and the exact filter over all trials)
-SMOOTH_BOUNDS = ((1e-3, 1.0),)
+#: (smooth temperature, bound on the largest angle (rad) between the smooth and the exact filter over all trials):
+#: measured 0.0777 rad at 1e-3 (near-threshold decisions switch a sample later, the heading difference persists)
+#: and 0 at 1e-7 (every decision saturated: the exact filter, bit for bit).
+SMOOTH_BOUNDS = ((1e-3, 0.1), (1e-7, 1e-12))
 
 
 def test_registry_entries_and_filter_frames(batch):
