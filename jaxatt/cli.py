@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
@@ -945,9 +946,33 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 1
 
 
+def compile_cache_dir(environ=os.environ) -> Optional[str]:
+    """Where the ``jaxatt`` command keeps compiled XLA programs between runs (JAX's persistent compilation cache):
+    ``$JAXATT_COMPILE_CACHE`` if set (``off`` disables it), else ``$XDG_CACHE_HOME/jaxatt/xla`` or
+    ``~/.cache/jaxatt/xla``; None when off, when ``JAX_COMPILATION_CACHE_DIR`` is already set (JAX's own setting
+    wins) or when the folder cannot be created. A program is reused only if its HLO, compile options, backend and
+    jax version are identical, so results do not change; only the second run starts sooner."""
+    if environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return None
+    choice = environ.get("JAXATT_COMPILE_CACHE", "")
+    if choice.lower() in ("off", "0", "no", "false"):
+        return None
+    try:
+        base = Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+        path = Path(choice) if choice else base / "jaxatt" / "xla"
+        path.mkdir(parents=True, exist_ok=True)
+    except (OSError, RuntimeError):  # no home folder, read-only file system, a file in the way
+        return None
+    return str(path) if os.access(path, os.W_OK) else None
+
+
 def entry() -> None:
     """The ``jaxatt`` command: :func:`main` with Ctrl-C handled (exit status 130, what was finished is saved; the
-    process then leaves without the interpreter's teardown, which can crash while XLA threads are busy)."""
+    process then leaves without the interpreter's teardown, which can crash while XLA threads are busy), and
+    compiled programs kept between runs (:func:`compile_cache_dir`)."""
+    cache = compile_cache_dir()
+    if cache is not None:  # read by JAX when it is imported (main imports it)
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = cache
     previous = signal.signal(signal.SIGINT, _on_sigint)
     try:
         rc = main()

@@ -316,3 +316,18 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
         == 2
     )
     assert "'steps' differs" in capsys.readouterr().err
+
+
+def test_compile_cache_dir(tmp_path):
+    """The command keeps compiled programs in the user's cache folder unless told otherwise; JAX's own setting
+    wins; a folder that cannot be made turns the cache off instead of failing the run."""
+    xdg = tmp_path / "xdg"
+    assert cli.compile_cache_dir({"XDG_CACHE_HOME": str(xdg)}) == str(xdg / "jaxatt" / "xla")
+    assert (xdg / "jaxatt" / "xla").is_dir()
+    assert cli.compile_cache_dir({"XDG_CACHE_HOME": str(xdg), "JAXATT_COMPILE_CACHE": "off"}) is None
+    assert cli.compile_cache_dir({"JAX_COMPILATION_CACHE_DIR": "/somewhere", "XDG_CACHE_HOME": str(xdg)}) is None
+    mine = tmp_path / "mine"
+    assert cli.compile_cache_dir({"JAXATT_COMPILE_CACHE": str(mine)}) == str(mine) and mine.is_dir()
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert cli.compile_cache_dir({"JAXATT_COMPILE_CACHE": str(blocker / "xla")}) is None
