@@ -958,8 +958,10 @@ def compile_cache_dir(environ=os.environ) -> Optional[str]:
     if choice.lower() in ("off", "0", "no", "false"):
         return None
     try:
-        base = Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-        path = Path(choice) if choice else base / "jaxatt" / "xla"
+        if choice:
+            path = Path(choice)
+        else:
+            path = Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "jaxatt" / "xla"
         path.mkdir(parents=True, exist_ok=True)
     except (OSError, RuntimeError):  # no home folder, read-only file system, a file in the way
         return None
