@@ -30,7 +30,9 @@ Precision: ``init`` runs on the params in the observer's dtype and the first sam
 
 from __future__ import annotations
 
+import collections
 import functools
+import hashlib
 import math
 from typing import Any, Callable, NamedTuple, Optional, Union
 
@@ -59,6 +61,7 @@ __all__ = [
     "estimate_r",
     "estimate_q",
     "Static",
+    "jit_shared",
 ]
 
 #: Steps per block (the simulator's noise block): the unit of the scan, of progress reports and of checkpointing.
@@ -521,3 +524,46 @@ def records_of(pick: Callable, every: int = 1) -> Reducer:
         return acc, pick(t, truth, out)
 
     return Reducer(init, update, lambda acc: (), every)
+
+
+#: Compiled programs of :func:`jit_shared`, keyed by the hash of their StableHLO text (most recent last).
+_PROGRAMS: "collections.OrderedDict[str, Any]" = collections.OrderedDict()
+_PROGRAMS_MAX = 32
+#: How often :func:`jit_shared` compiled a program and how often it found one already compiled.
+program_cache_stats = {"compiled": 0, "reused": 0}
+
+
+def jit_shared(fn: Callable) -> Callable:
+    """``jax.jit(fn)`` whose compiled programs are shared with every other function that lowers to the same
+    program (same StableHLO text, constants included), not only with calls of this ``fn`` object.
+
+    ``jax.jit`` caches per Python function object, so a closure built anew for each call (the fitter's objective
+    for each ``jaxatt.fit``) is traced and compiled again each time. Here each new argument signature is traced
+    and lowered (about a second for a whole-scan gradient), then compiled only when no identical program was
+    compiled before in this process (the last 32 are kept). Arguments are passed as with ``jax.jit``; no static
+    arguments.
+    """
+    jitted = jax.jit(fn)
+    mine: dict = {}
+
+    def call(*args):
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        signature = (tree, tuple((np.shape(a), jnp.result_type(a), getattr(a, "weak_type", False)) for a in leaves))
+        exe = mine.get(signature)
+        if exe is None:
+            lowered = jitted.lower(*args)
+            key = hashlib.sha256(lowered.as_text().encode()).hexdigest()
+            exe = _PROGRAMS.get(key)
+            if exe is None:
+                exe = lowered.compile()
+                program_cache_stats["compiled"] += 1
+            else:
+                program_cache_stats["reused"] += 1
+            _PROGRAMS[key] = exe
+            _PROGRAMS.move_to_end(key)
+            while len(_PROGRAMS) > _PROGRAMS_MAX:
+                _PROGRAMS.popitem(last=False)
+            mine[signature] = exe
+        return exe(*args)
+
+    return call

@@ -136,3 +136,24 @@ def test_estimate_r_and_q_read_either_field():
     np.testing.assert_allclose(np.asarray(engine.estimate_q({"r": r})), np.asarray(q), atol=1e-14)
     with pytest.raises(ValueError, match="neither a field"):
         engine.estimate_q({"x": 1.0})
+
+
+def test_jit_shared_compiles_a_program_once_for_new_closures_of_it():
+    """Two closures built the same way lower to the same program: the second is not compiled again and gives the
+    same numbers; a different captured constant is a different program and is compiled."""
+
+    def make(scale):
+        c = jnp.asarray(scale)
+        return lambda x: jnp.sum(jnp.sin(x) * c)
+
+    x = jnp.linspace(0.0, 1.0, 7)
+    before = dict(engine.program_cache_stats)
+    a = engine.jit_shared(make(1.2345))(x)
+    b = engine.jit_shared(make(1.2345))(x)
+    after_same = dict(engine.program_cache_stats)
+    c = engine.jit_shared(make(2.5))(x)
+    after_other = dict(engine.program_cache_stats)
+    assert after_same["compiled"] - before["compiled"] == 1 and after_same["reused"] - before["reused"] == 1
+    assert after_other["compiled"] - after_same["compiled"] == 1
+    assert float(a) == float(b) == pytest.approx(float(jnp.sum(jnp.sin(x)) * 1.2345), rel=1e-6)
+    assert float(c) == pytest.approx(float(jnp.sum(jnp.sin(x)) * 2.5), rel=1e-6)

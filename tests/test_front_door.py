@@ -13,7 +13,7 @@ import pytest
 from broad_data import DATA, need_data
 
 import jaxatt
-from jaxatt import montecarlo, so3
+from jaxatt import engine, montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.types import ImuSample, Observer
 
@@ -128,6 +128,11 @@ def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, 
     assert saved["gains"]["kp"]["value"] == pytest.approx(float(res.params.kp))
     with pytest.raises(ValueError, match="exists"):
         jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, out=str(out))
+    # the same fit again (a new objective closure, the same program) is not compiled again and gives the same gains
+    compiled = engine.program_cache_stats["compiled"]
+    again = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, lr=0.2)
+    assert engine.program_cache_stats["compiled"] == compiled
+    assert float(again.params.kp) == float(res.params.kp) and again.best_loss == res.best_loss
 
 
 def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log():

@@ -174,8 +174,9 @@ def optimize(
     if schedule not in ("constant", "cosine"):
         raise ValueError(f"schedule must be 'constant' or 'cosine', got {schedule!r}")
     optimizer = optax.adam(sched) if not clip else optax.chain(optax.clip_by_global_norm(clip), optax.adam(sched))
-    vg = jax.jit(jax.value_and_grad(objective, has_aux=True))
-    val_fn = jax.jit(val_objective or objective) if val_batch is not None else None
+    # shared programs: a second fit of the same problem (a new closure, the same program) is not compiled again
+    vg = engine.jit_shared(jax.value_and_grad(objective, has_aux=True))
+    val_fn = engine.jit_shared(val_objective or objective) if val_batch is not None else None
     theta = jax.tree_util.tree_map(jnp.asarray, dict(theta0))
     opt_state = optimizer.init(theta)
     history: List[dict] = []
