@@ -968,13 +968,43 @@ def compile_cache_dir(environ=os.environ) -> Optional[str]:
     return str(path) if os.access(path, os.W_OK) else None
 
 
+#: Most CPU devices the ``jaxatt`` command asks for (one per core, up to this many).
+MAX_CPU_DEVICES = 32
+
+
+def cpu_device_count(environ=os.environ) -> Optional[int]:
+    """How many CPU devices the ``jaxatt`` command asks JAX for, so that Monte Carlo and tuning split their runs
+    over every core (:mod:`jaxatt.sharding`): ``$JAXATT_CPU_DEVICES`` if set (a positive integer), else the cores
+    this process may use (at most :data:`MAX_CPU_DEVICES`); None when JAX is told already
+    (``JAX_NUM_CPU_DEVICES``, or ``--xla_force_host_platform_device_count`` in ``XLA_FLAGS``: the user's setting
+    wins). Results do not depend on it beyond rounding; on a GPU machine the CPU devices are not used.
+    Raises ValueError (one line) for a bad ``JAXATT_CPU_DEVICES``."""
+    if environ.get("JAX_NUM_CPU_DEVICES") or "xla_force_host_platform_device_count" in environ.get("XLA_FLAGS", ""):
+        return None
+    choice = environ.get("JAXATT_CPU_DEVICES", "").strip()
+    if choice:
+        if not choice.isdigit() or int(choice) < 1:
+            raise ValueError(f"JAXATT_CPU_DEVICES must be a positive integer, got {choice!r}")
+        return int(choice)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, MAX_CPU_DEVICES))
+
+
 def entry() -> None:
     """The ``jaxatt`` command: :func:`main` with Ctrl-C handled (exit status 130, what was finished is saved; the
     process then leaves without the interpreter's teardown, which can crash while XLA threads are busy), and
-    compiled programs kept between runs (:func:`compile_cache_dir`)."""
+    compiled programs kept between runs (:func:`compile_cache_dir`), and one CPU device per core
+    (:func:`cpu_device_count`)."""
     cache = compile_cache_dir()
     if cache is not None:  # read by JAX when it is imported (main imports it)
         os.environ["JAX_COMPILATION_CACHE_DIR"] = cache
+    try:
+        n_cpu = cpu_device_count()
+    except ValueError as e:
+        print(f"jaxatt: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    if n_cpu is not None:  # every core: the runs of a Monte Carlo chunk are split over the CPU devices
+        os.environ["JAX_NUM_CPU_DEVICES"] = str(n_cpu)
     previous = signal.signal(signal.SIGINT, _on_sigint)
     try:
         rc = main()

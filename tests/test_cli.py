@@ -1,6 +1,9 @@
 """The command line end to end on short runs: exit codes, JSON layout, clear errors."""
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -316,6 +319,41 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
         == 2
     )
     assert "'steps' differs" in capsys.readouterr().err
+
+
+def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):
+    """The command asks JAX for one CPU device per core unless told otherwise (the user's JAX setting wins); a
+    3-run Monte Carlo split over 2 devices (padded to 4) gives the per-run numbers of one device to rounding."""
+    assert cli.cpu_device_count({"JAXATT_CPU_DEVICES": "3"}) == 3
+    assert cli.cpu_device_count({"JAX_NUM_CPU_DEVICES": "1", "JAXATT_CPU_DEVICES": "3"}) is None
+    assert cli.cpu_device_count({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) is None
+    assert 1 <= cli.cpu_device_count({}) <= min(os.cpu_count() or 1, cli.MAX_CPU_DEVICES)
+    with pytest.raises(ValueError, match="JAXATT_CPU_DEVICES"):
+        cli.cpu_device_count({"JAXATT_CPU_DEVICES": "two"})
+    args = ["simulate", "--observer", "batista-ges", "--runs", "3", "--duration", "20", "--quiet"]
+    one = tmp_path / "one.json"
+    assert cli.main(args + ["--json", str(one)]) == 0
+    two = tmp_path / "two.json"
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxatt", *args, "--json", str(two)],
+        env={**env, "JAXATT_CPU_DEVICES": "2"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    d1, d2 = json.loads(one.read_text()), json.loads(two.read_text())
+    assert len(d2["environment"]["jax_devices"]) == 2
+    for key, m in d1["metrics"].items():
+        if isinstance(m, dict) and "per_run" in m:
+            np.testing.assert_allclose(d2["metrics"][key]["per_run"], m["per_run"], rtol=1e-9, atol=1e-12)
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxatt", *args], env={**env, "JAXATT_CPU_DEVICES": "0"}, capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "jaxatt: error: JAXATT_CPU_DEVICES must be a positive integer, got '0'"
+    ]
 
 
 def test_compile_cache_dir(tmp_path):
