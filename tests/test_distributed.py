@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-TIMEOUT_S = 480  # both launches together: ~50 s on an idle 2-core machine (3 processes share it), ~5 min at load 10
+TIMEOUT_S = 480  # both launches together; measured 150-290 s at load 10 on the 2-core VM (~100 s of CPU, cold)
 INIT_FAILED = 3  # exit status of a worker whose jax.distributed.initialize failed
 
 WORKER = textwrap.dedent(
