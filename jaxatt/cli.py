@@ -5,6 +5,11 @@ prints and writes files.
 Every command enables float64 in JAX (the library never does): simulated truth and sensors are float64, observers
 run in float64 unless ``--float32``. Bad input is one line on stderr naming the flag or file and exit status 2
 (``--debug`` shows the traceback); a non-finite result exits 1; Ctrl-C exits 130 keeping what was finished.
+
+Several processes (``jax.distributed``; hosts or processes of one machine): start the same command in every process
+with ``JAXATT_COORDINATOR=host:port`` (process 0's address), ``JAXATT_NUM_PROCESSES=n`` and ``JAXATT_PROCESS_ID=k``
+(:func:`jaxatt.sharding.initialize_distributed`); the runs split over every process's devices, process 0 prints the
+results and writes the files (the others print only errors and progress on stderr). See docs/gpu.md.
 """
 
 from __future__ import annotations
@@ -926,6 +931,15 @@ def main(argv: Optional[List[str]] = None) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)  # the entry point decides the precision (the library never does)
+        from .sharding import initialize_distributed
+
+        # several processes when JAXATT_COORDINATOR / JAXATT_NUM_PROCESSES / JAXATT_PROCESS_ID are set (before
+        # any other JAX call); every process runs the same command, process 0 writes the files
+        if initialize_distributed():
+            from .io import is_main_process
+
+            if not is_main_process():  # process 0 prints the results (and writes the files); errors still show
+                sys.stdout = open(os.devnull, "w")
         from . import api, studies  # noqa: F401 - imported before any work: an interrupt in an import is not lost
 
         if _INTERRUPTED:

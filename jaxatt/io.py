@@ -18,7 +18,15 @@ from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
-__all__ = ["write_json", "read_json", "check_output_path", "environment", "summarise", "to_jsonable"]
+__all__ = [
+    "write_json",
+    "read_json",
+    "check_output_path",
+    "environment",
+    "summarise",
+    "to_jsonable",
+    "is_main_process",
+]
 
 
 def to_jsonable(o: Any):
@@ -66,9 +74,25 @@ def check_output_path(path, flag: str = "output") -> Optional[Path]:
     return p
 
 
+def is_main_process() -> bool:
+    """False only in the processes other than process 0 of a multi-process JAX run (``jax.distributed``), which
+    write no files: every process computes the same results, process 0 saves them. True in a single process (and
+    before JAX is imported)."""
+    jax = sys.modules.get("jax")
+    if jax is None:
+        return True
+    initialized = getattr(getattr(jax, "distributed", None), "is_initialized", None)
+    if initialized is None or not initialized():
+        return True
+    return jax.process_index() == 0
+
+
 def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> None:
     """Write a file atomically: ``write(file_object)`` fills a temporary file in the same folder, which is synced
-    and renamed onto ``path``; an interrupted write never leaves a broken or partial file (nor a stray temporary)."""
+    and renamed onto ``path``; an interrupted write never leaves a broken or partial file (nor a stray temporary).
+    In a multi-process run only process 0 writes (:func:`is_main_process`); the others return at once."""
+    if not is_main_process():
+        return
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(p.parent))

@@ -420,7 +420,9 @@ def monte_carlo(
 
     ``devices`` (default: every visible device): the runs of each chunk are split over them
     (:mod:`jaxatt.sharding`; the chunk is rounded up to a multiple of the device count, padding runs dropped);
-    ``devices=1`` runs on one device. The result does not depend on the devices beyond rounding.
+    ``devices=1`` runs on one device. The result does not depend on the devices beyond rounding. Several processes
+    (``jax.distributed``, :func:`jaxatt.sharding.initialize_distributed`): call it in every process with the same
+    arguments; the runs split over every process's devices and every process gets the whole result.
     ``progress``: True for a line on stderr updated from inside the scan every 1000 steps, or a callable
     reporter (:mod:`jaxatt.progress`); None: off.
     Memory per chunk: the state and accumulators of ``chunk`` runs, one noise block (chunk x 1000 x channels)

@@ -53,10 +53,14 @@ def _plt():
 
 def save(fig, path: Union[str, Path], *, dpi: int = 110, close: bool = False) -> str:
     """Write ``fig`` to ``path`` (PNG unless the suffix says otherwise), creating the folder; returns the path.
-    ``close=True`` also closes the figure (scripts that draw many figures)."""
+    ``close=True`` also closes the figure (scripts that draw many figures). In a multi-process run only process 0
+    writes (:func:`jaxatt.io.is_main_process`)."""
+    from .io import is_main_process
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    if is_main_process():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=dpi)
     if close:
         _plt().close(fig)
     return str(path)

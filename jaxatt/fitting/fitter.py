@@ -16,6 +16,11 @@ order, optimizer state and best-so-far are restored, so the result equals an uni
 larger ``steps`` a finished fit continues). A finished gains file is never replaced by a new fit unless
 ``overwrite=True``, and then only once the new fit has finished: until then it saves itself in
 ``<out>.partial.json`` (:func:`partial_path`), which ``resume=True`` continues.
+
+Several processes (``jax.distributed``, :func:`jaxatt.sharding.initialize_distributed`): every process calls
+:func:`fit` with the same arguments; the runs of each study minibatch split over every global device, the loss and
+gradient are process 0's in every process (so every process takes the same steps) and only process 0 writes the
+gains file. Resuming then needs ``out`` where every process can read it (a shared file system).
 """
 
 from __future__ import annotations
@@ -127,9 +132,19 @@ def _to_lists(tree):
     return jax.tree_util.tree_map(lambda a: np.asarray(a).tolist(), tree)
 
 
-def _metric(aux) -> Optional[float]:
-    m = aux.get("metric") if isinstance(aux, dict) else None
-    return None if m is None else float(m)
+def _metric_value(aux):
+    """``aux["metric"]`` (an array) or None."""
+    return aux.get("metric") if isinstance(aux, dict) else None
+
+
+def _agree(*values):
+    """``values`` as they are with one process; with several (``jax.distributed``), numpy copies equal in every
+    process (:func:`jaxatt.sharding.agree`: process 0's), so every process takes the same branches."""
+    if jax.process_count() == 1:
+        return values
+    from ..sharding import agree
+
+    return tuple(agree(list(values)))
 
 
 def optimize(
@@ -204,7 +219,8 @@ def optimize(
 
     def validate(th):
         loss, aux = val_fn(th, val_batch)
-        return float(loss), _metric(aux)
+        loss, metric = _agree(loss, _metric_value(aux))
+        return float(loss), (None if metric is None else float(metric))
 
     def result(status):
         state = {
@@ -239,10 +255,15 @@ def optimize(
         for step in range(first, steps + 1):
             t0 = time.perf_counter()
             (loss, aux), grads = vg(theta, take(sampler.next()))
+            metric = _metric_value(aux)
+            if jax.process_count() > 1:  # one set of values in every process (same updates, same decisions)
+                loss, metric, grads = _agree(loss, metric, grads)
+                grads = jax.tree_util.tree_map(jnp.asarray, grads)
             loss = float(loss)
+            metric = None if metric is None else float(metric)
             gnorm = _global_norm(grads)
             finite = math.isfinite(loss) and math.isfinite(gnorm)
-            rec = {"step": step, "train_loss": loss, "train_metric": _metric(aux), "grad_norm": gnorm, "finite": finite}
+            rec = {"step": step, "train_loss": loss, "train_metric": metric, "grad_norm": gnorm, "finite": finite}
             if val_fn is None and finite and loss < best_train:
                 best_train, best_theta, best_step = loss, theta, step - 1
             if finite:
@@ -286,6 +307,7 @@ def optimize(
                 (last, _), _ = vg(
                     theta, take(np.arange(sampler.n)) if sampler.batch == sampler.n else take(sampler.next())
                 )
+                (last,) = _agree(last)
                 if math.isfinite(float(last)) and float(last) < best_train:
                     best_train, best_theta, best_step = float(last), theta, step
             if on_save is not None:
@@ -532,7 +554,8 @@ def fit(
         devices=devices,
     )
     if out_path is not None and final_path is not None and out_path != final_path and res.status in FINISHED:
-        os.replace(out_path, final_path)
+        if io.is_main_process():  # several processes: process 0 writes the files
+            os.replace(out_path, final_path)
         res = res._replace(path=str(final_path))
         if not quiet:
             print(f"{final_path} replaced by the finished new fit", file=sys.stderr, flush=True)

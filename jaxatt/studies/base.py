@@ -362,7 +362,7 @@ def reproduce(
         f"wall {wall:.1f} s, {payload['runs_done'] * n_steps * len(payload['observers']) / max(wall, 1e-9):.3g} "
         "run-steps/s (compile included)"
     )
-    if plot_path and payload["complete"]:
+    if plot_path and payload["complete"] and io.is_main_process():  # several processes: process 0 writes
         study.plot(cfg, payload, results, plot_path, dtype=dtype)
         payload["plot"] = plot_path
         print(f"plot written to {plot_path}")
