@@ -989,7 +989,8 @@ MAX_CPU_DEVICES = 32
 def cpu_device_count(environ=os.environ) -> Optional[int]:
     """How many CPU devices the ``jaxatt`` command asks JAX for, so that Monte Carlo and tuning split their runs
     over every core (:mod:`jaxatt.sharding`): ``$JAXATT_CPU_DEVICES`` if set (a positive integer), else the cores
-    this process may use (at most :data:`MAX_CPU_DEVICES`); None when JAX is told already
+    this process may use (at most :data:`MAX_CPU_DEVICES`; 1 when ``JAXATT_NUM_PROCESSES`` starts several
+    processes, :func:`jaxatt.sharding.initialize_distributed`); None when JAX is told already
     (``JAX_NUM_CPU_DEVICES``, or ``--xla_force_host_platform_device_count`` in ``XLA_FLAGS``: the user's setting
     wins). Results do not depend on it beyond rounding; on a GPU machine the CPU devices are not used.
     Raises ValueError (one line) for a bad ``JAXATT_CPU_DEVICES``."""
@@ -1000,6 +1001,8 @@ def cpu_device_count(environ=os.environ) -> Optional[int]:
         if not choice.isdigit() or int(choice) < 1:
             raise ValueError(f"JAXATT_CPU_DEVICES must be a positive integer, got {choice!r}")
         return int(choice)
+    if environ.get("JAXATT_NUM_PROCESSES"):  # several processes (jax.distributed): one device each
+        return 1
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return max(1, min(cores, MAX_CPU_DEVICES))
 

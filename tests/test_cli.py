@@ -325,6 +325,7 @@ def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):
     """The command asks JAX for one CPU device per core unless told otherwise (the user's JAX setting wins); a
     3-run Monte Carlo split over 2 devices (padded to 4) gives the per-run numbers of one device to rounding."""
     assert cli.cpu_device_count({"JAXATT_CPU_DEVICES": "3"}) == 3
+    assert cli.cpu_device_count({"JAXATT_NUM_PROCESSES": "2"}) == 1
     assert cli.cpu_device_count({"JAX_NUM_CPU_DEVICES": "1", "JAXATT_CPU_DEVICES": "3"}) is None
     assert cli.cpu_device_count({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) is None
     assert 1 <= cli.cpu_device_count({}) <= min(os.cpu_count() or 1, cli.MAX_CPU_DEVICES)
