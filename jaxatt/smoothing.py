@@ -1,5 +1,9 @@
 """Offline mode: forward-backward smoothing of any causal observer on a whole recording.
 
+Use it through the front door: ``jaxatt.filter(name_or_observer, gyr, acc, mag, dt=..., offline=True)`` and
+``jaxatt.broad_score(..., offline=True)`` (settings: :class:`Offline`); :func:`smoother_fn` is the batched, pure
+function underneath (docs: ``docs/offline.md``).
+
 The causal observer runs twice over the recording, unchanged: forward, and over the time-reversed recording
 (:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers); the two
 estimates of each sample are fused by a weighted geodesic average whose weights come from an uncertainty model
@@ -19,8 +23,10 @@ backward bias estimates are fused by their covariances, the gyro is integrated o
 accelerometer is low-passed forward and backward (zero phase) in that strapdown frame, and the heading offset is
 filtered forward then backward, with rejection where both directions detect a disturbance. Here the whole
 filter runs in each direction and only its estimates are fused, so any registered observer (or your own) gets an
-offline mode; the gates of the observer (robust AHRS, VQF) give separate heading and inclination weights, and
-:func:`reverse_item` can start the backward pass from the forward pass's final gyro bias (``seed_bias``).
+offline mode; the gates of the observer (robust AHRS, VQF) give separate heading and inclination weights, and with
+``seed_bias`` (:class:`Offline`) a second round of passes starts each pass from the gyro bias the other pass of
+the first round ended with (offline VQF's use of the bias of both directions, for any observer with an output
+``bias``).
 
 Uncertainty model (per direction, per channel c in {inclination, heading}; in seconds of gyro-only coasting, so
 the fusion params are all time constants): ``P_0 = start_c``, then per step k over dt_k
@@ -70,8 +76,12 @@ __all__ = [
     "Offline",
     "resolve_offline",
     "Smoothed",
+    "Passes",
+    "passes_fn",
+    "fuse_passes",
     "smoother_fn",
     "compiled",
+    "compiled_passes",
     "broad_metric_fn",
 ]
 
@@ -403,7 +413,29 @@ def _with_bias(out, b):
     return out._replace(bias=b) if hasattr(out, "_replace") else {**out, "bias": b}
 
 
-def smoother_fn(
+class Passes(NamedTuple):
+    """The records of both passes (:func:`passes_fn`), before the fusion (:func:`fuse_passes`).
+
+    Fields:
+        forward: dict of (B, T, ...) records in forward time: ``q`` (w, x, y, z), ``trust`` (B, T, 2), ``bias``
+            when the observer outputs one, ``out`` (every output) with ``keep_outputs``.
+        backward: the same for the backward pass, in ITS time (row j at t_{L-1-j}), its bias of the negated gyro.
+        dt_forward, dt_backward: the step lengths (s), (B, 1) for a constant dt or (B, T).
+        meas: (B, T) the row of the backward records that holds each forward time (:func:`reverse_indices`).
+        seed_forward, seed_backward: (B, 3) the biases (rad/s, forward gyro's sign) the passes were started with
+            (``seed_bias``), else None.
+    """
+
+    forward: Any
+    backward: Any
+    dt_forward: Any
+    dt_backward: Any
+    meas: Any
+    seed_forward: Any = None
+    seed_backward: Any = None
+
+
+def passes_fn(
     observer,
     n_steps: int,
     *,
@@ -411,36 +443,13 @@ def smoother_fn(
     hold: str = "next",
     obs_dtype=None,
     trust: Callable = trust_of,
-    heading: bool = True,
     seed_bias: bool = False,
     keep_outputs: bool = False,
     segment: int = 0,
 ):
-    """``fn(params, fusion, item, lengths) -> Smoothed``: the forward and backward passes of ``observer`` (each
-    one :func:`jaxatt.engine.batch_fn` scan over the whole batch) and their fusion, per sample. Pure JAX: jit it,
-    differentiate it in ``params`` and ``fusion`` (:class:`FusionParams`).
-
-    Args:
-        observer: the :class:`jaxatt.types.Observer` as run on recorded data (a registered one through
-            :func:`jaxatt.observers.registry.recorded_observer`); its estimate must be in a nav frame fixed by the
-            measurements (gravity and the magnetic field: ENU for every registered observer), since both passes
-            must estimate the same rotation.
-        n_steps: T - 1 (T the padded length).
-        per_step_dt: ``item["dt"]`` is (B, T) (dt[k] = t_k - t_{k-1}, s) rather than a constant (B,).
-        hold: the observer's input per step (:data:`jaxatt.types.HOLDS`).
-        obs_dtype: the observer's arithmetic (and that of the fusion).
-        trust: ``trust(out) -> (acc_trust, mag_trust)`` (:func:`trust_of`).
-        heading: the estimate has an absolute heading (9D); False: fuse the inclination only
-            (:func:`fuse_inclination`, 6D).
-        seed_bias: see :class:`Offline` (needs an output ``bias``).
-        keep_outputs: also return every output field of both passes.
-        segment: checkpointed segment length of the scans (:func:`jaxatt.engine.segment_length`; 0 = none):
-            reverse mode then stores one state per segment.
-    ``item`` is :class:`jaxatt.engine.Recorded`'s batch (``samples``: :class:`jaxatt.types.ImuSample` of
-    (B, T, ...) arrays in the sensor frame, rad/s, m/s^2, any field unit; ``dt``; ``truth`` ignored);
-    ``lengths`` (B,) the real samples of each recording, the rest padding that repeats the last sample
-    (:func:`jaxatt.data.broad.pad_trials`): each recording is reversed within its own length, so a recording
-    smooths the same alone or in any batch."""
+    """``fn(params, item, lengths) -> Passes``: the forward and backward passes of ``observer`` over a batch of
+    recordings (each pass one :func:`jaxatt.engine.batch_fn` scan over the whole batch), before the fusion.
+    Arguments as :func:`smoother_fn`."""
     run = engine.batch_fn(
         observer,
         engine.Recorded(int(n_steps), per_step_dt),
@@ -450,8 +459,7 @@ def smoother_fn(
         segment=segment,
     )
 
-    def fn(params, fusion, item, lengths):
-        fusion = FusionParams(*fusion)
+    def fn(params, item, lengths):
         lengths = jnp.asarray(lengths)
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None}
         rev = reverse_item(item, lengths, hold)
@@ -475,39 +483,112 @@ def smoother_fn(
         dt_b = jnp.asarray(rev["dt"], dtype)
         if not per_step_dt:
             dt_f, dt_b = dt_f[:, None], dt_b[:, None]
-        taus = (fusion.tau_inclination, fusion.tau_heading)
-        starts = (fusion.start_inclination, fusion.start_heading)
-
-        def variances(trust_, dt):
-            return jnp.stack(
-                [
-                    uncertainty(trust_[..., c], dt, jnp.asarray(taus[c], dtype), jnp.asarray(starts[c], dtype))
-                    for c in (0, 1)
-                ],
-                axis=-1,
-            )
-
-        var_f = variances(fwd["trust"], dt_f)
-        var_b = _take_time(variances(bwd["trust"], dt_b), meas)
-        q_f = fwd["q"]
-        q_b = _take_time(bwd["q"], meas)
-        w = var_f / (var_f + var_b)
-        q = fuse(q_f, q_b, w[..., 0], w[..., 1]) if heading else fuse_inclination(q_f, q_b, w[..., 0])
-        out_f = out_b = None
-        if keep_outputs:
-            out_f = fwd["out"]
-            out_b = jax.tree_util.tree_map(lambda a: _take_time(a, meas), bwd["out"])
-            bf, bb = _get(out_f, "bias"), _get(out_b, "bias")
-            if bb is not None and jnp.shape(bb)[-1:] == (3,):
-                bb = -bb
-                if b_bwd is not None:
-                    bb = bb + b_bwd[:, None, :].astype(bb.dtype)
-                out_b = _with_bias(out_b, bb)
-            if bf is not None and b_fwd is not None and jnp.shape(bf)[-1:] == (3,):
-                out_f = _with_bias(out_f, bf + b_fwd[:, None, :].astype(bf.dtype))
-        return Smoothed(q, q_f, q_b, w[..., 0], w[..., 1], var_f, var_b, out_f, out_b)
+        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd)
 
     return fn
+
+
+def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
+    """The fused estimate of :func:`passes_fn`'s records with the :class:`FusionParams` ``fusion`` (pure JAX,
+    differentiable in both); ``heading`` as in :func:`smoother_fn`."""
+    fusion = FusionParams(*fusion)
+    fwd, bwd, meas = passes.forward, passes.backward, passes.meas
+    dtype = fwd["q"].dtype
+    taus = (fusion.tau_inclination, fusion.tau_heading)
+    starts = (fusion.start_inclination, fusion.start_heading)
+
+    def variances(trust_, dt):
+        return jnp.stack(
+            [
+                uncertainty(trust_[..., c], dt, jnp.asarray(taus[c], dtype), jnp.asarray(starts[c], dtype))
+                for c in (0, 1)
+            ],
+            axis=-1,
+        )
+
+    var_f = variances(fwd["trust"], passes.dt_forward)
+    var_b = _take_time(variances(bwd["trust"], passes.dt_backward), meas)
+    q_f = fwd["q"]
+    q_b = _take_time(bwd["q"], meas)
+    w = var_f / (var_f + var_b)
+    q = fuse(q_f, q_b, w[..., 0], w[..., 1]) if heading else fuse_inclination(q_f, q_b, w[..., 0])
+    out_f = out_b = None
+    if "out" in fwd:
+        b_fwd, b_bwd = passes.seed_forward, passes.seed_backward
+        out_f = fwd["out"]
+        out_b = jax.tree_util.tree_map(lambda a: _take_time(a, meas), bwd["out"])
+        bf, bb = _get(out_f, "bias"), _get(out_b, "bias")
+        if bb is not None and jnp.shape(bb)[-1:] == (3,):
+            bb = -bb
+            if b_bwd is not None:
+                bb = bb + b_bwd[:, None, :].astype(bb.dtype)
+            out_b = _with_bias(out_b, bb)
+        if bf is not None and b_fwd is not None and jnp.shape(bf)[-1:] == (3,):
+            out_f = _with_bias(out_f, bf + b_fwd[:, None, :].astype(bf.dtype))
+    return Smoothed(q, q_f, q_b, w[..., 0], w[..., 1], var_f, var_b, out_f, out_b)
+
+
+def smoother_fn(
+    observer,
+    n_steps: int,
+    *,
+    per_step_dt: bool = False,
+    hold: str = "next",
+    obs_dtype=None,
+    trust: Callable = trust_of,
+    heading: bool = True,
+    seed_bias: bool = False,
+    keep_outputs: bool = False,
+    segment: int = 0,
+):
+    """``fn(params, fusion, item, lengths) -> Smoothed``: the forward and backward passes of ``observer``
+    (:func:`passes_fn`) and their fusion per sample (:func:`fuse_passes`). Pure JAX: jit it, differentiate it in
+    ``params`` and ``fusion`` (:class:`FusionParams`).
+
+    Args:
+        observer: the :class:`jaxatt.types.Observer` as run on recorded data (a registered one through
+            :func:`jaxatt.observers.registry.recorded_observer`); its estimate must be in a nav frame fixed by the
+            measurements (gravity and the magnetic field: ENU for every registered observer), since both passes
+            must estimate the same rotation.
+        n_steps: T - 1 (T the padded length).
+        per_step_dt: ``item["dt"]`` is (B, T) (dt[k] = t_k - t_{k-1}, s) rather than a constant (B,).
+        hold: the observer's input per step (:data:`jaxatt.types.HOLDS`).
+        obs_dtype: the observer's arithmetic (and that of the fusion).
+        trust: ``trust(out) -> (acc_trust, mag_trust)`` (:func:`trust_of`).
+        heading: the estimate has an absolute heading (9D); False: fuse the inclination only
+            (:func:`fuse_inclination`, 6D).
+        seed_bias: see :class:`Offline` (needs an output ``bias``).
+        keep_outputs: also return every output field of both passes.
+        segment: checkpointed segment length of the scans (:func:`jaxatt.engine.segment_length`; 0 = none):
+            reverse mode then stores one state per segment.
+    ``item`` is :class:`jaxatt.engine.Recorded`'s batch (``samples``: :class:`jaxatt.types.ImuSample` of
+    (B, T, ...) arrays in the sensor frame, rad/s, m/s^2, any field unit; ``dt``; ``truth`` ignored);
+    ``lengths`` (B,) the real samples of each recording, the rest padding that repeats the last sample
+    (:func:`jaxatt.data.broad.pad_trials`): each recording is reversed within its own length, so a recording
+    smooths the same alone or in any batch."""
+    passes = passes_fn(
+        observer,
+        n_steps,
+        per_step_dt=per_step_dt,
+        hold=hold,
+        obs_dtype=obs_dtype,
+        trust=trust,
+        seed_bias=seed_bias,
+        keep_outputs=keep_outputs,
+        segment=segment,
+    )
+
+    def fn(params, fusion, item, lengths):
+        return fuse_passes(passes(params, item, lengths), fusion, heading)
+
+    return fn
+
+
+@functools.lru_cache(maxsize=32)
+def compiled_passes(observer, n_steps: int, **static):
+    """``jax.jit`` of :func:`passes_fn` (cached like :func:`compiled`): the records of both passes, to fuse with
+    many fusion params (:func:`fuse_passes`)."""
+    return jax.jit(passes_fn(observer, n_steps, **static))
 
 
 @functools.lru_cache(maxsize=32)
