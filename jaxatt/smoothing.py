@@ -601,13 +601,16 @@ def compiled(observer, n_steps: int, **static):
 # ------------------------------------------------------------------------------------------------------------
 # BROAD
 # ------------------------------------------------------------------------------------------------------------
-def broad_metric_fn(observer, trials, *, hold: str = "next", dtype=None, offline=True, heading: bool = True):
+def broad_metric_fn(
+    observer, trials, *, hold: str = "next", dtype=None, offline=True, heading: bool = True, segment: int = 0
+):
     """``fn(params, fusion) -> {metric: (B,) RMSE deg}``: the BROAD metric (:data:`jaxatt.data.broad.METRICS`) of
     the offline estimate of ``observer`` on ``trials`` (padded, all in one batch), as a pure JAX function of the
     observer's params and the :class:`FusionParams` (jit it, differentiate it: gains and fusion can be tuned
     through the smoother). ``offline``: :class:`Offline` settings (its ``fusion`` is not used: pass it to ``fn``).
     Estimate k is scored against ``opt_quat[k]`` (sensor to ENU) over the movement samples with finite truth,
-    computed in the truth's precision (float64 when x64 is on)."""
+    computed in the truth's precision (float64 when x64 is on). ``segment``: checkpointed segment length of the
+    scans (:func:`jaxatt.engine.segment_length`), to bound the memory of a gradient over long trials."""
     from .data import broad
 
     spec = resolve_offline(offline) or Offline()
@@ -623,6 +626,7 @@ def broad_metric_fn(observer, trials, *, hold: str = "next", dtype=None, offline
         trust=spec.trust,
         heading=heading,
         seed_bias=spec.seed_bias,
+        segment=segment,
     )
     truth = item["truth"]
 
