@@ -33,6 +33,18 @@ Filters and conventions:
   instead) over each trial with sample 0 processed twice (``setState`` from sample 0, then samples 0 ... N-1),
   ``montecarlo.log_runner``, float64, its sensor-to-NWU output rotated into ENU; wall includes compiling (one
   per trial length).
+* **offline mode** (``jaxatt-robust-offline``, ``jaxatt-vqf-offline``; :mod:`jaxatt.smoothing`): the registered
+  observer run forward and over the time-reversed trials (gyro negated), the two estimates fused per sample with
+  the default fusion params (``jaxatt.smoothing.default_fusion``, whose heading numbers are what each training fold
+  picks below, so in sample for those two numbers); every trial in one batched call of ``passes_fn`` (float64),
+  then ``fuse_passes``. The robust AHRS with the ``--gains`` file (in sample for ``all``), VQF with its defaults.
+  Each row also keeps the forward pass's metrics (``forward``: the causal filter), and its samples/s are those of
+  a warm call of both passes and the fusion.
+* **offline mode out of fold** (``jaxatt-robust-offline-oof``, ``jaxatt-vqf-offline-oof``): the 2 folds of the
+  out-of-fold row; on each training fold the fusion params are chosen from :data:`FUSION_GRID` (the lowest mean of
+  the two group means of the total RMSE there), with the gains tuned on that fold (robust: the shipped
+  ``robust_broad_fold{k}.json``; VQF: its defaults, tuned on nothing), and the trials of the other fold are
+  scored with both. Wall includes compiling.
 * **VQF online 9D**: ``vqf.VQF(Ts).updateBatch(gyr, acc, mag)["quat9D"]``; **offline VQF 9D**:
   ``vqf.offlineVQF(gyr, acc, mag, Ts, None)["quat9D"]``. VQF's quaternions are sensor-to-ENU like BROAD's.
 * **ahrs Madgwick** (beta = 0.12) and **ahrs Mahony** (BROAD's best gains k_P = 0.74, k_I = 0.0012): started
@@ -67,11 +79,20 @@ G = 9.81
 #: Rows besides one ``jaxatt-<name>`` per registered recorded observer (:func:`filter_names`).
 SPECIAL = ("jaxatt-robust", "jaxatt-robust-oof", "jaxatt-mahony-broad")
 EXTERNAL = ("vqf-online", "vqf-offline", "ahrs-madgwick", "ahrs-mahony", "imufusion")
+#: The offline mode of jaxatt (forward-backward smoothing, jaxatt.smoothing): in sample / out of fold.
+OFFLINE = ("jaxatt-robust-offline", "jaxatt-robust-offline-oof", "jaxatt-vqf-offline", "jaxatt-vqf-offline-oof")
+#: Fusion params (tau_inclination, tau_heading, start_inclination, start_heading), s, that the out-of-fold offline
+#: rows choose from on each training fold (the inclination numbers barely matter on BROAD).
+FUSION_GRID = tuple((3.0, th, 10.0, sh) for th in (10.0, 30.0, 100.0, 300.0) for sh in (1.0, 10.0, 30.0))
 #: The anchor of each filter (jaxatt.data.broad.ANCHORS; "ahrs Mahony (BROAD best)" = BROAD's published Mahony).
 ANCHOR_KEY = {
     "jaxatt-mahony-broad": "ahrs Mahony (BROAD best)",
     "vqf-online": "VQF online 9D",
     "vqf-offline": "VQF offline 9D",
+    "jaxatt-robust-offline": "VQF offline 9D",
+    "jaxatt-robust-offline-oof": "VQF offline 9D",
+    "jaxatt-vqf-offline": "VQF offline 9D",
+    "jaxatt-vqf-offline-oof": "VQF offline 9D",
     "ahrs-madgwick": "ahrs Madgwick beta=0.12",
     "ahrs-mahony": "ahrs Mahony (BROAD best)",
     "imufusion": "imufusion defaults",
@@ -83,7 +104,7 @@ def filter_names():
     from jaxatt.observers import registry
 
     own = tuple(f"jaxatt-{n}" for n in registry.names(recorded=True) if n != "robust")
-    return SPECIAL[:2] + own + SPECIAL[2:] + EXTERNAL
+    return SPECIAL[:2] + own + SPECIAL[2:] + OFFLINE + EXTERNAL
 
 
 def _triad(acc, mag, frame):
@@ -301,6 +322,144 @@ def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
     return {tr.name: per[tr.name] for tr in trials}, info, wall
 
 
+def _offline_params(name, gains):
+    """Params of the offline rows: the robust AHRS's gains file ``gains`` (shipped name or path), VQF's defaults."""
+    import numpy as np
+
+    from jaxatt.observers import registry
+
+    return robust_params(gains, "float64") if name == "robust" else registry.get(name).params(dtype=np.float64)
+
+
+def _fuse_q(passes, fusion):
+    from jaxatt import smoothing
+
+    return smoothing.fuse_passes(passes, fusion).q
+
+
+_FUSE = None
+
+
+def offline_passes(trials, name, params):
+    """Both passes of the registered observer ``name`` over ``trials`` (padded, one batched call, float64):
+    (passes, padded, wall s of the first call incl. compiling)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxatt import smoothing
+    from jaxatt.data import broad
+    from jaxatt.observers import registry
+
+    entry = registry.get(name)
+    padded = broad.pad_trials(trials)
+    item = jax.device_put({**broad.batch_item(padded, "float64"), "truth": None})
+    fn = smoothing.compiled_passes(
+        registry.recorded_observer(entry), int(padded.samples.t.shape[1]) - 1, hold=entry.hold, obs_dtype=np.float64
+    )
+    t0 = time.perf_counter()
+    passes = jax.block_until_ready(fn(params, item, jnp.asarray(padded.lengths)))
+    return passes, padded, time.perf_counter() - t0, (fn, item)
+
+
+def offline_metrics(passes, padded, trials, fusion=None, forward=False):
+    """Per-trial BROAD metrics (numpy, float64) of the fused estimate (or of the forward pass)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxatt import smoothing
+    from jaxatt.data import broad
+
+    global _FUSE
+    if _FUSE is None:
+        _FUSE = jax.jit(_fuse_q)
+    if forward:
+        q = np.asarray(passes.forward["q"], np.float64)
+    else:
+        f = smoothing.default_fusion(jnp.float64) if fusion is None else smoothing.FusionParams(*map(float, fusion))
+        q = np.asarray(_FUSE(passes, smoothing.FusionParams(*(jnp.asarray(v, jnp.float64) for v in f))), np.float64)
+    n = np.asarray(padded.lengths)
+    return {tr.name: broad.broad_errors(q[i, : n[i]], tr.quat_true, tr.movement) for i, tr in enumerate(trials)}
+
+
+def _balanced_total(per, names):
+    """Mean of the two group means of the total RMSE over ``names`` (the out-of-fold rows' selection criterion)."""
+    import numpy as np
+
+    from jaxatt.data import broad
+
+    means = [
+        np.mean([per[n]["total_rmse_deg"] for n in names if broad.group_of(n) == g])
+        for g in broad.GROUPS
+        if any(broad.group_of(n) == g for n in names)
+    ]
+    return float(np.mean(means))
+
+
+def run_offline(trials, name, gains):
+    """The in-sample offline row: (per-trial metrics, extra, wall s of a warm call of both passes and fusion)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxatt import smoothing
+
+    p = _offline_params(name, gains)
+    passes, padded, first, (fn, item) = offline_passes(trials, name, p)
+    per = offline_metrics(passes, padded, trials)
+    fwd = offline_metrics(passes, padded, trials, forward=True)
+    t0 = time.perf_counter()
+    jax.block_until_ready(_FUSE(fn(p, item, jnp.asarray(padded.lengths)), smoothing.default_fusion(jnp.float64)))
+    wall = time.perf_counter() - t0
+    extra = {
+        "first_call_s": first,
+        "fusion": {k: float(v) for k, v in smoothing.default_fusion()._asdict().items()},
+        "gains": gains if name == "robust" else "defaults",
+        "forward": {n: {"total_rmse_deg": v["total_rmse_deg"]} for n, v in fwd.items()},
+        "note": "warm call of both passes (float64) and the fusion; forward = the causal filter's metrics",
+    }
+    return per, extra, wall
+
+
+def run_offline_oof(data_dir, trials, name):
+    """Out-of-fold offline row: per fold, the fusion params chosen on the training fold from FUSION_GRID with the
+    gains tuned there, the other fold scored. Returns (per-trial metrics, fold info, wall s incl. compiling)."""
+    from jaxatt.data import broad
+    from jaxatt.data import gains as shipped
+
+    t_start = time.perf_counter()
+    all_names = broad.resolve_trials(data_dir)
+    folds = broad.stratified_folds(all_names, broad.load_trial_info(data_dir))
+    by_name = {tr.name: tr for tr in trials}
+    missing = [n for n in all_names if n not in by_name]
+    pool = list(trials) + (broad.load(data_dir, missing) if missing else [])
+    per, info, cache = {}, [], {}
+    for k, train in enumerate(folds, start=1):
+        test = [tr.name for tr in trials if tr.name not in train]
+        if not test:
+            continue
+        gains = str(shipped.path(f"robust_broad_fold{k}.json")) if name == "robust" else "defaults"
+        if gains not in cache:  # VQF's defaults: one pair of passes serves both folds
+            passes, padded, _, _ = offline_passes(pool, name, _offline_params(name, gains))
+            grid = {g: offline_metrics(passes, padded, pool, g) for g in FUSION_GRID}
+            cache[gains] = (grid, offline_metrics(passes, padded, pool, forward=True))
+        grid, fwd = cache[gains]
+        best = min(FUSION_GRID, key=lambda g: _balanced_total(grid[g], train))
+        for n in test:
+            per[n] = {**grid[best][n], "fold": k, "forward_total_rmse_deg": fwd[n]["total_rmse_deg"]}
+        info.append(
+            {
+                "fold": k,
+                "train": train,
+                "test": test,
+                "gains": pathlib.Path(gains).name,
+                "fusion": dict(zip(("tau_inclination", "tau_heading", "start_inclination", "start_heading"), best)),
+                "train_criterion_deg": _balanced_total(grid[best], train),
+            }
+        )
+    return {tr.name: per[tr.name] for tr in trials}, info, time.perf_counter() - t_start
+
+
 def _groups(per):
     """Group means of per-trial metrics, as jaxatt.broad_score computes them."""
     from jaxatt.api import TrialScore, group_means
@@ -318,7 +477,7 @@ def main(argv=None) -> int:
         nargs="+",
         default=None,
         help="rows to run (default all): jaxatt-robust, jaxatt-robust-oof, jaxatt-<registered name>, "
-        f"jaxatt-mahony-broad, {', '.join(EXTERNAL)}",
+        f"jaxatt-mahony-broad, {', '.join(OFFLINE)}, {', '.join(EXTERNAL)}",
     )
     ap.add_argument("--trials", nargs="*", default=None, help="names, numbers, groups or fold1/fold2 (default all)")
     ap.add_argument("--gains", default="all", help="robust AHRS gains: shipped name (all, fold1, fold2) or a path")
@@ -366,6 +525,16 @@ def main(argv=None) -> int:
                 folds_dir=args.folds_dir,
             )
             extra = {"folds": folds, "note": "wall includes compile; each trial scored with the other fold's gains"}
+        elif flt in ("jaxatt-robust-offline", "jaxatt-vqf-offline"):
+            per, extra, wall = run_offline(trials, flt.split("-")[1], args.gains)
+        elif flt in ("jaxatt-robust-offline-oof", "jaxatt-vqf-offline-oof"):
+            per, folds, wall = run_offline_oof(args.data_dir, trials, flt.split("-")[1])
+            extra = {
+                "folds": folds,
+                "fusion_grid": FUSION_GRID,
+                "note": "wall includes compile; fusion chosen on the training fold, each trial scored with the other "
+                "fold's gains and fusion",
+            }
         elif flt == "jaxatt-mahony-broad":
             per, wall = run_jaxatt_mahony_broad(trials)
             extra = {"note": "BROAD's protocol (start, sample 0 twice), float64; wall includes compile"}
@@ -393,7 +562,7 @@ def main(argv=None) -> int:
                 wall += w
         per = {tr.name: {**per[tr.name], "group": tr.group or broad.group_of(tr.name)} for tr in trials}
         groups = _groups(per)
-        timed = wall > 0 and flt != "jaxatt-robust-oof"  # the out-of-fold row's wall is scoring + compiling
+        timed = wall > 0 and not flt.endswith("-oof")  # the out-of-fold rows' wall is scoring + compiling
         results[flt] = {
             "trials": per,
             "groups": groups,
@@ -405,14 +574,14 @@ def main(argv=None) -> int:
         print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items()) + rate, flush=True)
 
     print(f"\nBROAD, {len(names)} trials, {n_samples} samples: mean total RMSE (deg)")
-    print(f"{'filter':21s} {'undisturbed':>12s} {'disturbed':>10s} {'anchor':>14s} {'samples/s':>11s}")
+    print(f"{'filter':26s} {'undisturbed':>12s} {'disturbed':>10s} {'anchor':>14s} {'samples/s':>11s}")
     for flt, r in results.items():
         a = broad.ANCHORS.get(ANCHOR_KEY.get(flt, ""), None)
         anc = f"{a['undisturbed']:.2f} / {a['disturbed']:.2f}" if a else ""
         g = r["groups"]
         sps = f"{r['samples_per_s']:11.3g}" if r["samples_per_s"] else f"{'-':>11s}"
         print(
-            f"{flt:21s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
+            f"{flt:26s} {g.get('undisturbed', {}).get('total_rmse_deg', float('nan')):12.2f} "
             f"{g.get('disturbed', {}).get('total_rmse_deg', float('nan')):10.2f} {anc:>14s} {sps}"
         )
     if "jaxatt-robust" in results:

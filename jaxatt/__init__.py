@@ -3,7 +3,8 @@
 Front door (:mod:`jaxatt.api`): ``jaxatt.filter(name_or_observer, gyr, acc, mag, dt=...)`` on your own arrays,
 ``jaxatt.broad_score`` / ``jaxatt.fit`` on BROAD trials (``jaxatt.data.broad.load``), ``jaxatt.monte_carlo`` on a
 simulated AHRS scenario; the papers' studies in :mod:`jaxatt.studies`; observers in :mod:`jaxatt.observers`
-(registry: :mod:`jaxatt.observers.registry`).
+(registry: :mod:`jaxatt.observers.registry`). ``filter`` and ``broad_score`` take ``offline=True``: forward-backward
+smoothing over the whole recording (:mod:`jaxatt.smoothing`).
 
 Conventions: quaternions (w, x, y, z); R maps sensor/body to the navigation frame; SI units (rad/s, m/s^2, s);
 frames named at every public function (the Batista papers simulate in NED, BROAD uses ENU; :mod:`jaxatt.frames`).
@@ -47,6 +48,7 @@ _SUBMODULES = (
     "schedule",
     "sharding",
     "sim",
+    "smoothing",
     "so3",
     "studies",
     "types",

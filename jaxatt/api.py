@@ -5,14 +5,18 @@ tuned on them, or in Monte Carlo on a simulated AHRS scenario.
     est = jaxatt.filter("robust", gyr, acc, mag, dt=1 / 285.714)        # numpy (T, 3) in, est.quat (T, 4) out
     est = jaxatt.filter("mekf", gyr, acc, mag, dt=0.01, frame="NED")    # any registered observer
     est = jaxatt.filter(my_observer, gyr, acc, mag, dt=0.01, params=my_params)
+    est = jaxatt.filter("robust", gyr, acc, mag, dt=0.0035, offline=True)  # forward-backward smoothing
     trials = jaxatt.data.broad.load("path/to/broad", trials=["01", "02"])
     score = jaxatt.broad_score("robust", None, trials)   # .trials[name].total_rmse_deg, .groups["disturbed"]...
+    score = jaxatt.broad_score("robust", None, trials, offline=True)      # the smoothed estimate's metric
     fit = jaxatt.fit(my_observer, my_params, trials, steps=20)            # .params (same type), .history
 
 Conventions: inputs in the sensor (body) frame, gyro rad/s, accelerometer m/s^2 (specific force, "up" at rest),
 magnetometer in any unit; quaternions (w, x, y, z) mapping sensor to the navigation frame (``frame``: ENU, NED or
 NWU, :mod:`jaxatt.frames`). T samples give T estimates, estimate 0 being the observer's start from the first
-sample (:mod:`jaxatt.engine`). Arithmetic: float64 for float64 input when JAX's x64 is on (jaxatt never switches
+sample (:mod:`jaxatt.engine`). ``offline=True`` (``filter``, ``broad_score``) uses the whole recording: the observer
+runs forward and over the time-reversed recording and the two estimates are fused per sample
+(:mod:`jaxatt.smoothing`). Arithmetic: float64 for float64 input when JAX's x64 is on (jaxatt never switches
 it: ``jax.config.update("jax_enable_x64", True)``); otherwise float32, with a warning for float64 input.
 """
 
@@ -227,6 +231,7 @@ def filter(
     frame: str = "ENU",
     hold: Optional[str] = None,
     dtype=None,
+    offline=False,
 ) -> Estimate:
     """Run an observer over one recording; T estimates for T samples (numpy).
 
@@ -247,10 +252,23 @@ def filter(
         hold: the input of each step (:data:`jaxatt.types.HOLDS`; default the observer's, "next" for your own:
             sample k updates the estimate to t_k, as ahrs and VQF do).
         dtype: "float32" / "float64" (default: from the input, see the module docstring).
+        offline: False (default): the causal filter, estimate k from samples 0 ... k. True (or a
+            :class:`jaxatt.smoothing.Offline`, or fusion params as a dict / :class:`jaxatt.smoothing.FusionParams`):
+            forward-backward smoothing, estimate k from the whole recording: the observer also runs over the
+            time-reversed recording (gyro negated) and both estimates of each sample are fused, heading and
+            inclination weighted by the observer's gates (:mod:`jaxatt.smoothing`). ``quat`` is the fused
+            estimate; ``outputs`` holds the forward pass's fields as without it, the backward pass's as
+            ``backward_<field>`` (in forward time, bias in the forward gyro's sign), ``q_forward``, ``q_backward``
+            and the backward weights ``weight_inclination``, ``weight_heading``. The observer's navigation frame
+            must be fixed by gravity and the magnetic field (every registered 9D observer); a 6D observer
+            (no magnetometer) is smoothed in inclination only.
     Raises ValueError (one line naming the argument) on bad input, FloatingPointError when an estimate is not
     finite (the first row and time are named).
     """
     frame = frames.check_frame(frame)
+    from . import smoothing
+
+    spec = smoothing.resolve_offline(offline)
     gyr_a = _vectors("gyr", gyr, None, True)
     assert gyr_a is not None  # required: _vectors raised on None
     n = gyr_a.shape[0]
@@ -275,11 +293,36 @@ def filter(
         "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
         "truth": None,
     }
-    fn = engine.compiled(
-        obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
-    )
-    out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
-    q = np.asarray(engine.estimate_q(out))
+    if spec is None:
+        fn = engine.compiled(
+            obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
+        )
+        out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
+        q = np.asarray(engine.estimate_q(out))
+        extra: Dict[str, Any] = {}
+    else:
+        heading = ("mag" in entry.needs) if entry is not None else mag_a is not None
+        sm = smoothing.compiled(
+            obs,
+            n - 1,
+            per_step_dt=per_step,
+            hold=hold,
+            obs_dtype=dt_,
+            trust=spec.trust,
+            heading=heading,
+            seed_bias=spec.seed_bias,
+            keep_outputs=True,
+        )
+        fusion = engine.cast_floats(spec.fusion, dt_)
+        res = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], sm(p, fusion, item, np.array([n]))))
+        out, q = res.forward, np.asarray(res.q)
+        extra = {f"backward_{k}": np.asarray(v) for k, v in _as_dict(res.backward).items()}
+        extra.update(
+            q_forward=np.asarray(res.q_forward),
+            q_backward=np.asarray(res.q_backward),
+            weight_inclination=np.asarray(res.weight_inclination),
+            weight_heading=np.asarray(res.weight_heading),
+        )
     with np.errstate(invalid="ignore"):
         bad = ~(np.linalg.norm(q, axis=-1) > 1e-6)  # NaN / inf, or a quaternion collapsed to zero
     if bad.any():
@@ -291,6 +334,7 @@ def filter(
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
+    outputs.update(extra)
     return Estimate(ts, q, frame, outputs, name, p)
 
 
@@ -349,7 +393,7 @@ def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
 
 
 def broad_score(
-    observer: ObserverLike, params, trials: Sequence, *, hold: Optional[str] = None, dtype=None
+    observer: ObserverLike, params, trials: Sequence, *, hold: Optional[str] = None, dtype=None, offline=False
 ) -> BroadScore:
     """The BROAD metric of an observer on trials (all at once: padded, vmapped, one scan).
 
@@ -361,6 +405,9 @@ def broad_score(
         trials: :class:`jaxatt.data.broad.Trial` s (:func:`jaxatt.data.broad.load`).
         hold: as in :func:`filter`.
         dtype: the filter's arithmetic ("float32" is the fast choice; default from the data).
+        offline: score the offline (forward-backward smoothed) estimate instead of the causal one: True, a
+            :class:`jaxatt.smoothing.Offline` or fusion params (as in :func:`filter`); the observer's name gets
+            the suffix "+offline".
     Returns :class:`BroadScore`. Estimate k is scored against ``opt_quat[k]`` over the movement samples with
     finite truth (BROAD's metric, no offset fitted). A trial with no such sample has NaN metrics (no ground truth:
     nothing to score) and is left out of the group means; FloatingPointError when a scored trial's metric is not
@@ -379,8 +426,18 @@ def broad_score(
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    from . import smoothing
+
+    spec = smoothing.resolve_offline(offline)
     t0 = time.perf_counter()
-    res = B.score(obs, p, trials, hold=hold, dtype=dt_)
+    if spec is None:
+        res = B.score(obs, p, trials, hold=hold, dtype=dt_)
+    else:
+        heading = ("mag" in entry.needs) if entry is not None else True
+        metric = smoothing.broad_metric_fn(obs, trials, hold=hold, dtype=dt_, offline=spec, heading=heading)
+        summary = jax.device_get(jax.jit(metric)(p, engine.cast_floats(spec.fusion, dt_)))
+        res = {tr.name: {m: float(summary[m][i]) for m in B.METRICS} for i, tr in enumerate(trials)}
+        name = f"{name}+offline"
     wall = time.perf_counter() - t0
     per = {}
     for tr in trials:

@@ -181,6 +181,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
+    fp.add_argument(
+        "--offline",
+        action="store_true",
+        help="forward-backward smoothing over the whole log (jaxatt.smoothing): q is the fused estimate, the "
+        "columns backward_* and weight_* are added",
+    )
     fp.add_argument("--out", required=True, help="CSV of t, qw, qx, qy, qz and the observer's flags")
     _output_flags(fp)
 
@@ -264,6 +270,7 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("--trials", nargs="*", default=None, help="trial names, numbers, groups or fold1/fold2")
     bp.add_argument("--json", default=None)
     bp.add_argument("--float32", action="store_true")
+    bp.add_argument("--offline", action="store_true", help="score the forward-backward smoothed estimate")
     _output_flags(bp)
 
     bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials")
@@ -649,7 +656,7 @@ def _broad(args) -> int:
     trials = broad.load(args.data_dir, args.trials)
     dtype = "float32" if args.float32 else "float64"
     with Heartbeat(f"running {args.observer} on {len(trials)} trials", bool(_progress(args))):
-        score = api.broad_score(args.observer, args.gains, trials, dtype=dtype)
+        score = api.broad_score(args.observer, args.gains, trials, dtype=dtype, offline=args.offline)
     shipped = getattr(api.registry.get(args.observer), "shipped", None) if args.observer in api.registry.INDEX else None
     source = args.gains or (f"shipped gains {shipped}" if shipped else "default gains")
     _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
@@ -661,6 +668,7 @@ def _broad(args) -> int:
             "gains": {k: np.asarray(v).tolist() for k, v in params._asdict().items()},
             "gains_source": source,
             "dtype": dtype,
+            "offline": bool(args.offline),
             "wall_s": score.wall_s,
             "anchors": broad.ANCHORS,
             "data": broad.ATTRIBUTION,
@@ -770,6 +778,7 @@ def _filter(args) -> int:
             params=params,
             frame=args.frame,
             dtype="float32" if args.float32 else None,
+            offline=args.offline,
         )
     cols, names = [est.t, est.quat[:, 0], est.quat[:, 1], est.quat[:, 2], est.quat[:, 3]], ["t", "qw", "qx", "qy", "qz"]
     for k, v in est.outputs.items():

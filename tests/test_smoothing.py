@@ -1,0 +1,251 @@
+"""The offline mode (jaxatt.smoothing): the fusion against a numpy/scipy reference, the time reversal, the
+smoothed estimate against the truth of a simulated recording, a batch of padded recordings against each alone,
+the gradient through both passes against finite differences, and the front door's checks."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from broad_data import DATA, need_data
+from scipy.spatial.transform import Rotation, Slerp
+
+import jaxatt
+from jaxatt import montecarlo, so3
+from jaxatt import smoothing as S
+from jaxatt.fitting import parametrize as P
+from jaxatt.observers import registry
+
+
+def _rot(q):
+    return Rotation.from_quat(np.asarray(q)[..., [1, 2, 3, 0]])
+
+
+def _quat(r):
+    q = r.as_quat()[..., [3, 0, 1, 2]]
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def _same_rotation(a, b, tol):
+    """max over rows of 1 - |<a, b>| (0 for the same rotation, either sign)."""
+    return float(np.max(1.0 - np.abs(np.sum(np.asarray(a) * np.asarray(b), axis=-1)))) <= tol
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The fusion and the uncertainty against numpy
+# ------------------------------------------------------------------------------------------------------------
+def test_fusion_and_uncertainty_match_a_numpy_reference():
+    rng = np.random.default_rng(0)
+    n = 200
+    qf = _quat(Rotation.random(n, random_state=1))
+    # backward estimates a few degrees to ~120 deg away
+    qb = _quat(Rotation.from_rotvec(rng.normal(size=(n, 3)) * np.linspace(0.01, 1.2, n)[:, None]) * _rot(qf))
+    wi, wh = rng.uniform(size=n), rng.uniform(size=n)
+    got = np.asarray(S.fuse(jnp.asarray(qf), jnp.asarray(qb), jnp.asarray(wi), jnp.asarray(wh)))
+    # reference: delta = log(Rb Rf^T) in the nav frame, midpoint, anisotropic weights about it
+    delta = (_rot(qb) * _rot(qf).inv()).as_rotvec()
+    mid = Rotation.from_rotvec(delta / 2) * _rot(qf)
+    w = np.stack([wi, wi, wh], axis=-1)
+    ref = _quat(Rotation.from_rotvec((w - 0.5) * delta) * mid)
+    assert _same_rotation(got, ref, 1e-13)
+    # equal weights: slerp; 0 and 1: the estimates themselves; swapping estimates and weights: the same rotation
+    for k in range(0, n, 37):
+        s = Slerp([0, 1], Rotation.concatenate([_rot(qf[k]), _rot(qb[k])]))
+        q = S.fuse(jnp.asarray(qf[k]), jnp.asarray(qb[k]), jnp.asarray(wi[k]), jnp.asarray(wi[k]))
+        assert _same_rotation(q, _quat(s([wi[k]]))[0], 1e-13)
+    zero, one = jnp.zeros(n), jnp.ones(n)
+    assert _same_rotation(S.fuse(jnp.asarray(qf), jnp.asarray(qb), zero, zero), qf, 1e-13)
+    assert _same_rotation(S.fuse(jnp.asarray(qf), jnp.asarray(qb), one, one), qb, 1e-13)
+    swapped = S.fuse(jnp.asarray(qb), jnp.asarray(qf), jnp.asarray(1 - wi), jnp.asarray(1 - wh))
+    assert _same_rotation(swapped, got, 1e-13)
+    # inclination-only fusion keeps the forward heading: the fused and forward up-vectors in the body frame
+    # follow the swing; the heading of q_f is untouched when q_b differs by a pure yaw
+    yaw = _quat(Rotation.from_rotvec(np.array([0, 0, 0.7])) * _rot(qf))
+    q6 = S.fuse_inclination(jnp.asarray(qf), jnp.asarray(yaw), jnp.asarray(wi))
+    assert _same_rotation(q6, qf, 1e-13)
+
+    # uncertainty: P_0 = start, P_k = (1 - g)^2 (P_{k-1} + dt), g = trust (1 - exp(-dt / tau))
+    trust = rng.uniform(size=(3, 500)) * (rng.uniform(size=(3, 500)) > 0.3)
+    dt = rng.uniform(0.005, 0.02, size=(3, 500))
+    got = np.asarray(S.uncertainty(jnp.asarray(trust), jnp.asarray(dt), 2.0, 7.0))
+    ref = np.empty_like(trust)
+    ref[:, 0] = 7.0
+    for k in range(1, 500):
+        g = trust[:, k] * (1 - np.exp(-dt[:, k] / 2.0))
+        ref[:, k] = (1 - g) ** 2 * (ref[:, k - 1] + dt[:, k])
+    np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
+def test_reverse_indices_align_the_gyro_with_the_interval_it_covers():
+    n, length = 12, 9
+    for hold in ("next", "zoh", "linear"):
+        meas, gyr = (np.asarray(a) for a in S.reverse_indices(n, length, hold))
+        assert list(meas[:length]) == list(range(length - 1, -1, -1)) and np.all(meas[length:] == 0)
+        for j in range(1, length):  # reversed step j covers the forward interval [L-1-j, L-j]
+            used = {"next": j, "zoh": j - 1, "linear": j}[hold]  # the reversed sample the step reads its gyro from
+            want = {"next": length - j, "zoh": length - 1 - j, "linear": None}[hold]
+            if want is not None:
+                assert gyr[used] == want, (hold, j)
+        if hold == "linear":
+            assert np.array_equal(gyr, meas)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# On a simulated recording
+# ------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sim():
+    """20 s at 100 Hz of the simulated AHRS (constant gyro bias, no rest at the start: the causal filters'
+    start transient is long), gyro sample 0 = sample 1 (see the time-reversal test)."""
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=2e-3, acc_noise_std=0.1, mag_noise_std=0.5)
+    s, truth = montecarlo.simulate_log(scn, duration=20.0, dt=0.01, seed=3)
+    g, a, m = (np.array(x, np.float64) for x in (s.gyr, s.acc, s.mag))
+    g[0] = g[1]
+    return g, a, m, np.asarray(truth.r)
+
+
+def _reversed(g, a, m):
+    """The time-reversed recording, hold "next": gyro sample j of the reversed recording covers the forward
+    interval ending at sample L - j, negated."""
+    idx = np.concatenate([[len(g) - 1], np.arange(len(g) - 1, 0, -1)])
+    return -g[idx], a[::-1].copy(), m[::-1].copy()
+
+
+def _rms_deg(r_true, q):
+    return float(np.sqrt(np.mean(np.rad2deg(np.asarray(so3.angle_error(r_true, so3.quat_to_matrix(q)))) ** 2)))
+
+
+def test_smoothing_the_reversed_recording_gives_the_reversed_estimate(sim):
+    g, a, m, _ = sim
+    off = S.Offline(seed_bias=True)
+    est = jaxatt.filter("mahony", g, a, m, dt=0.01, offline=off)
+    rev = jaxatt.filter("mahony", *_reversed(g, a, m), dt=0.01, offline=off)
+    assert est.quat.dtype == np.float64
+    assert _same_rotation(rev.quat[::-1], est.quat, 1e-12)
+    # the passes swap: the forward pass of the reversed recording is the backward pass of the recording
+    assert _same_rotation(rev.outputs["q_forward"][::-1], est.outputs["q_backward"], 1e-12)
+    np.testing.assert_allclose(rev.outputs["weight_heading"][::-1], 1 - est.outputs["weight_heading"], atol=1e-12)
+    # biases: the backward pass's, in the forward gyro's sign, equals the reversed recording's forward pass's
+    # negated (the reversed gyro is negated)
+    np.testing.assert_allclose(-rev.outputs["bias"][::-1], est.outputs["backward_bias"], atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["robust", "mahony"])
+def test_smoothed_error_is_below_the_causal_filters_on_a_simulated_recording(sim, name):
+    g, a, m, r_true = sim
+    est = jaxatt.filter(name, g, a, m, dt=0.01, offline=True)
+    fwd = _rms_deg(r_true, est.outputs["q_forward"])
+    smooth = _rms_deg(r_true, est.quat)
+    if name == "mahony":  # the forward pass is the causal filter itself
+        causal = jaxatt.filter(name, g, a, m, dt=0.01)
+        assert _same_rotation(causal.quat, est.outputs["q_forward"], 1e-14)
+    assert smooth < 0.75 * fwd, (name, fwd, smooth)
+    assert smooth < _rms_deg(r_true, est.outputs["q_backward"]), name
+
+
+def test_a_padded_batch_smooths_each_recording_as_alone(sim):
+    g, a, m, _ = sim
+    obs = registry.recorded_observer("mahony")
+    p = registry.get("mahony").params(dtype=np.float64)
+    n, short = len(g), len(g) - 157
+
+    def item_of(arrs, length):
+        pad = lambda x: np.concatenate([x[:length], np.repeat(x[length - 1 : length], n - length, 0)])  # noqa: E731
+        return [pad(x) for x in arrs]
+
+    rows = [item_of((g, a, m), n), item_of((g, a, m), short)]
+    t = np.arange(n) * 0.01
+    samples = jaxatt.ImuSample(*(jnp.asarray(np.stack(x)) for x in ([t, t], *zip(*rows))))
+    fn = S.compiled(obs, n - 1, obs_dtype=np.dtype(np.float64), seed_bias=True)
+    res = fn(p, S.default_fusion(), {"samples": samples, "dt": jnp.full((2,), 0.01)}, jnp.asarray([n, short]))
+    alone = jaxatt.filter("mahony", g[:short], a[:short], m[:short], dt=0.01, offline=S.Offline(seed_bias=True))
+    assert _same_rotation(np.asarray(res.q)[1, :short], alone.quat, 1e-12)
+    full = jaxatt.filter("mahony", g, a, m, dt=0.01, offline=S.Offline(seed_bias=True))
+    assert _same_rotation(np.asarray(res.q)[0], full.quat, 1e-12)
+
+
+def test_gradient_through_both_passes_matches_finite_differences(sim):
+    """d/d theta of the mean squared angle error of the smoothed estimate over 2 s, theta = the robust AHRS's
+    tuned gains (log space) and the log fusion params, against a central difference along a random direction."""
+    g, a, m, r_true = sim
+    k = 200
+    e = registry.get("robust")
+    obs = registry.recorded_observer(e)
+    bound = P.for_gains(e.gains).bind(e.default_params(dtype=jnp.float64))
+    fn = S.smoother_fn(obs, k - 1, obs_dtype=jnp.float64)
+    t = jnp.arange(k) * 0.01
+    item = {
+        "samples": jaxatt.ImuSample(t[None], *(jnp.asarray(x[None, :k]) for x in (g, a, m))),
+        "dt": jnp.full(1, 0.01),
+    }
+    rt = jnp.asarray(r_true[:k])
+
+    def loss(theta):
+        gains, log_f = theta
+        q = fn(bound.constrain(gains), S.FusionParams(*jnp.exp(log_f)), item, jnp.asarray([k])).q[0]
+        return jnp.mean(jnp.rad2deg(so3.angle_error(rt, so3.quat_to_matrix(q))) ** 2)
+
+    th0 = (bound.init(), jnp.log(jnp.asarray([2.0, 5.0, 3.0, 4.0])))  # fusion away from its defaults' corner
+    vg = jax.jit(jax.value_and_grad(loss))
+    value, grad = vg(th0)
+    assert np.isfinite(float(value))
+    leaves = jax.tree_util.tree_leaves(grad)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+    assert float(jnp.max(jnp.abs(grad[1]))) > 0  # the fusion params reach the loss
+    rng = np.random.default_rng(0)
+    d = jax.tree_util.tree_map(lambda x: jnp.asarray(rng.standard_normal(np.shape(x))), th0)
+    d = (bound.zero_frozen(d[0]), d[1])
+    h = 1e-5
+    fp = vg(jax.tree_util.tree_map(lambda x, y: x + h * y, th0, d))[0]
+    fm = vg(jax.tree_util.tree_map(lambda x, y: x - h * y, th0, d))[0]
+    fd = float(fp - fm) / (2 * h)
+    ad = sum(float(jnp.vdot(x, y)) for x, y in zip(jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(d)))
+    assert abs(fd) > 0
+    assert abs(ad - fd) <= 1e-4 * abs(fd), (ad, fd)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The front door
+# ------------------------------------------------------------------------------------------------------------
+def test_bad_offline_settings_are_one_clear_line(sim):
+    g, a, m, _ = sim
+    with pytest.raises(ValueError, match="offline must be"):
+        jaxatt.filter("mahony", g, a, m, dt=0.01, offline="yes")
+    with pytest.raises(ValueError, match="fusion parameter tau_heading must be a finite positive"):
+        jaxatt.filter("mahony", g, a, m, dt=0.01, offline={"tau_heading": -1.0})
+    with pytest.raises(ValueError, match="unknown fusion parameters"):
+        jaxatt.filter("mahony", g, a, m, dt=0.01, offline={"tau": 1.0})
+    with pytest.raises(ValueError, match="seed_bias needs an output field bias"):
+        jaxatt.filter("madgwick", g[:50], a[:50], m[:50], dt=0.01, offline=S.Offline(seed_bias=True))
+
+
+def test_broad_score_offline_is_the_metric_of_the_smoothed_estimate():
+    need_data()
+    from jaxatt.data import broad
+
+    trials = broad.load(DATA, ["24"])
+    tr = trials[0]
+    sc = jaxatt.broad_score("robust", None, trials, offline=True)
+    est = jaxatt.filter("robust", tr.samples.gyr, tr.samples.acc, tr.samples.mag, dt=1 / tr.rate_hz, offline=True)
+    ref = broad.broad_errors(est.quat, tr.quat_true, tr.movement)
+    assert sc.observer == "robust+offline"
+    np.testing.assert_allclose(sc.trials[tr.name].total_rmse_deg, ref["total_rmse_deg"], rtol=1e-6)
+    causal = jaxatt.broad_score("robust", None, trials).trials[tr.name].total_rmse_deg
+    assert sc.trials[tr.name].total_rmse_deg < causal
+
+
+def test_filter_command_offline_with_timestamps(sim, tmp_path):
+    """``jaxatt filter --offline`` on a CSV log (timestamps: the per-step dt path) writes the fused estimate, the
+    same as with the constant dt."""
+    from jaxatt import cli
+    from jaxatt.data import logs
+
+    g, a, m, _ = sim
+    t = np.arange(len(g)) * 0.01
+    log, out = tmp_path / "log.csv", tmp_path / "est.csv"
+    logs.save_log(log, jaxatt.ImuSample(t, g, a, m))
+    assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--offline", "--out", str(out)]) == 0
+    table = np.genfromtxt(out, delimiter=",", names=True)
+    assert "weight_heading" in table.dtype.names and "backward_bias_x" in table.dtype.names
+    q = np.column_stack([table[c] for c in ("qw", "qx", "qy", "qz")])
+    const = jaxatt.filter("mahony", g, a, m, dt=0.01, offline=True)
+    assert _same_rotation(q, const.quat, 1e-12)
