@@ -27,7 +27,8 @@ mean, max and final value (estimates 1 ... n_steps; estimate 0 is init's and is 
 
 Every builder returns ``fn(items) -> dict`` (jitted, vmapped over the first axis of ``items``): ``items`` are PRNG
 keys (``jax.random.PRNGKey`` arrays, (B, 2)) unless ``noise_at`` / ``init_at`` are given (the tests feed jaxatt's
-noise stream that way). With ``record=True`` the result also holds every estimate (runs, n_steps + 1, ...).
+noise stream that way). With ``record=True`` the result also holds every estimate and the true attitude
+``r_true`` (runs, n_steps + 1, ...).
 
 Usage (x64 enabled for float64)::
 
@@ -38,7 +39,7 @@ Usage (x64 enabled for float64)::
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, Dict, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -194,7 +195,7 @@ def _monte_carlo(init, step, n_steps: int, dt: float, window_start: float, recor
     def run(item):
         if prepare is not None:
             item = prepare(item)
-        carry0, _, out0 = init(item)
+        carry0, r_true0, out0 = init(item)
         z = jnp.zeros((), out0["r"].dtype)
 
         def body(c, k):
@@ -203,7 +204,7 @@ def _monte_carlo(init, step, n_steps: int, dt: float, window_start: float, recor
             ang = angle_deg(r_true, out["r"])
             w = (k + 1) * dt >= window_start
             acc = (total + jnp.where(w, ang, 0.0), count + w, jnp.maximum(worst, jnp.where(w, ang, 0.0)), ang)
-            return (carry, acc), (out if record else None)
+            return (carry, acc), (dict(out, r_true=r_true) if record else None)
 
         (_, (total, count, worst, last)), recs = jax.lax.scan(body, (carry0, (z, z, z, z)), jnp.arange(n_steps))
         res = {
@@ -212,6 +213,7 @@ def _monte_carlo(init, step, n_steps: int, dt: float, window_start: float, recor
             "final_angle_error_deg": last,
         }
         if record:
+            out0 = dict(out0, r_true=r_true0)
             res.update({k: jnp.concatenate([out0[k][None], v]) for k, v in recs.items()})
         return res
 
@@ -670,7 +672,7 @@ def complementary(
 
 
 #: jaxatt study name -> builder.
-STUDIES = {
+STUDIES: Dict[str, Callable] = {
     "batista-ges": batista_ges,
     "batista-so3": batista_so3,
     "nlio-case1": nlio_case1,

@@ -26,6 +26,7 @@ import os
 import pathlib
 import sys
 import time
+from typing import Dict, List
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -85,7 +86,7 @@ def measure(study: str, batch: int, n_steps: int, *, repeats: int, min_time: flo
     fused_out, fused_first_s = _first(fused, s.scenario, s.params, keys)
     plain_out, plain_first_s = _first(plain, keys)
 
-    times = {"fused": [], "plain": []}
+    times: Dict[str, List[float]] = {"fused": [], "plain": []}
     calls = {"fused": lambda: fused(s.scenario, s.params, keys), "plain": lambda: plain(keys)}
     while min(len(v) for v in times.values()) < repeats or min(sum(v) for v in times.values()) < min_time:
         for kind in ("fused", "plain"):
