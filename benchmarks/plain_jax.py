@@ -162,9 +162,9 @@ def rkmk4(f, x, frames, sides, dt):
     return x_new, [act(g, dt * p, s) for g, p, s in zip(frames, phis, sides)]
 
 
-def rk4(f, x, dt, inputs=None):
-    """Classical RK4 of dx/dt = f(x, u) for a pytree x; ``inputs`` = (u0, u_half, u1) or None (f(x) only)."""
-    u0, uh, u1 = inputs if inputs is not None else (None, None, None)
+def rk4(f, x, dt, inputs):
+    """Classical RK4 of dx/dt = f(x, u) for a pytree x; ``inputs`` = (u at t, u at t + dt/2, u at t + dt)."""
+    u0, uh, u1 = inputs
     add = lambda a, b, h: jax.tree_util.tree_map(lambda p, q: p + h * q, a, b)  # noqa: E731
     k1 = f(x, u0)
     k2 = f(add(x, k1, 0.5 * dt), uh)

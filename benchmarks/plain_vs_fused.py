@@ -7,14 +7,16 @@ Measured, for each study (batista-ges, batista-so3, nlio-case1 (NLIO-FG), comple
   (tuned) observer with an ``engine.Simulated`` source (truth and sensors in the scan, the study's per-run
   initial-estimate draw if any) and ``montecarlo.metrics_reducer`` (window from t = 0, no traces): every error of
   the study's ``errors`` and the angle error reduced in the scan (as benchmarks/throughput.py's ``fused`` rows).
+* ``fused_angle`` (unless ``--no-angle-only``): the same with a reducer that accumulates only the angle error's
+  mean, max and last value, as the plain version does (what the metrics cost, and a like-for-like ratio).
 * ``plain``: benchmarks/plain_jax.py: truth, sensors and observer of a run in one ``lax.scan``, ``vmap`` over the
   runs' keys, ``jit``; noise drawn per step with ``fold_in(key, k)``; only the angle error is accumulated.
 
 Both are compiled ahead of time (compile time reported separately), called once to warm up, then timed
-interleaved (fused, plain, fused, plain, ...; best of each), so both see the same machine load. ``ratio`` =
-fused run-steps/s / plain run-steps/s; the issue's goals are >= 10 (batista-ges) and >= 5 (the others). The mean
-angle error over runs of both is printed as a sanity check (different noise streams: equal in distribution, not
-in value).
+interleaved (fused, fused_angle, plain, fused, ...; best of each), so all see the same machine load. ``ratio`` =
+fused run-steps/s / plain run-steps/s (``ratio_angle_only``: fused_angle / plain); the issue's goals are >= 10
+(batista-ges) and >= 5 (the others). The mean angle error over runs is printed as a sanity check (jaxatt and the
+plain version draw different noise streams: equal in distribution, not in value).
 
 Usage: python benchmarks/plain_vs_fused.py [--quick] [--batches 1000 100] [--steps 2000] [--studies ...]
 """
@@ -22,11 +24,12 @@ Usage: python benchmarks/plain_vs_fused.py [--quick] [--batches 1000 100] [--ste
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import pathlib
 import sys
 import time
-from typing import Dict, List
+from typing import Any, Dict, List, Tuple
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -63,8 +66,34 @@ def _first(compiled, *args):
     return out, time.perf_counter() - t0
 
 
-def measure(study: str, batch: int, n_steps: int, *, repeats: int, min_time: float, seed: int = 0):
-    """Compile both programs of ``study``, then time them interleaved; one result row."""
+@functools.lru_cache(maxsize=None)
+def angle_only_reducer():
+    """A reducer that accumulates only what the plain version does: the angle error's mean, max and last value."""
+    import jax.numpy as jnp
+
+    from jaxatt import engine, metrics
+
+    def init(t0, truth0, out0):
+        z = jnp.zeros((), engine.estimate_r(out0).dtype)
+        return (z, z, z, z), None
+
+    def update(acc, t, truth, out):
+        r = engine.estimate_r(out)
+        ang = metrics.angle_error_deg(truth.r.astype(r.dtype), r)
+        return (acc[0] + ang, acc[1] + 1.0, jnp.maximum(acc[2], ang), ang), None
+
+    def finish(acc):
+        return {
+            "mean_angle_error_deg": acc[0] / jnp.maximum(acc[1], 1.0),
+            "max_angle_error_deg": acc[2],
+            "final_angle_error_deg": acc[3],
+        }
+
+    return engine.Reducer(init, update, finish, 0)
+
+
+def measure(study: str, batch: int, n_steps: int, *, repeats: int, min_time: float, angle_only: bool, seed: int = 0):
+    """Compile the programs of ``study``, then time them interleaved; one result row."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -78,55 +107,49 @@ def measure(study: str, batch: int, n_steps: int, *, repeats: int, min_time: flo
         raise ValueError(f"{study}: dt = {dt} s, expected 0.01 s")
     f64 = jnp.dtype(jnp.float64)
     source = engine.Simulated(n_steps, dt, f64, s.init_params)
-    reducer = montecarlo.metrics_reducer(s.errors_fn, 0.0, (), 0, None, 0.5 * dt)
-    fused_fn = engine.compiled(s.observer, source, reducer, None, hold=s.hold, obs_dtype=f64)
     keys = montecarlo.run_keys(seed, np.arange(batch))
-    fused, fused_lower_s, fused_compile_s = _compile(fused_fn, s.scenario, s.params, keys)
-    plain, plain_lower_s, plain_compile_s = _compile(plain_jax.STUDIES[study](n_steps, dt), keys)
-    fused_out, fused_first_s = _first(fused, s.scenario, s.params, keys)
-    plain_out, plain_first_s = _first(plain, keys)
+    reducers = {"fused": montecarlo.metrics_reducer(s.errors_fn, 0.0, (), 0, None, 0.5 * dt)}
+    if angle_only:
+        reducers["fused_angle"] = angle_only_reducer()
+    programs: Dict[str, Tuple[Any, tuple]] = {}  # kind -> (jitted, args)
+    for kind, reducer in reducers.items():
+        fn = engine.compiled(s.observer, source, reducer, None, hold=s.hold, obs_dtype=f64)
+        programs[kind] = (fn, (s.scenario, s.params, keys))
+    programs["plain"] = (plain_jax.STUDIES[study](n_steps, dt), (keys,))
 
-    times: Dict[str, List[float]] = {"fused": [], "plain": []}
-    calls = {"fused": lambda: fused(s.scenario, s.params, keys), "plain": lambda: plain(keys)}
+    row: Dict[str, Any] = {"study": study, "observer": s.observer.name, "hold": s.hold, "batch": batch}
+    row["steps"] = n_steps
+    compiled, first_out = {}, {}
+    for kind, (fn, args) in programs.items():
+        compiled[kind], row[f"{kind}_lower_s"], row[f"{kind}_compile_s"] = _compile(fn, *args)
+    for kind, (_, args) in programs.items():
+        first_out[kind], row[f"{kind}_first_call_s"] = _first(compiled[kind], *args)
+
+    times: Dict[str, List[float]] = {kind: [] for kind in programs}
     while min(len(v) for v in times.values()) < repeats or min(sum(v) for v in times.values()) < min_time:
-        for kind in ("fused", "plain"):
+        for kind, (_, args) in programs.items():  # interleaved: fused, (fused_angle,) plain, fused, ...
             t0 = time.perf_counter()
-            jax.block_until_ready(calls[kind]())
+            jax.block_until_ready(compiled[kind](*args))
             times[kind].append(time.perf_counter() - t0)
-        if len(times["fused"]) >= 50:
+        if len(times["plain"]) >= 50:
             break
-    run_steps = batch * n_steps
-    fused_best, plain_best = min(times["fused"]), min(times["plain"])
-    mean_err = lambda out: float(np.mean(np.asarray(out["mean_angle_error_deg"], float)))  # noqa: E731
-    fused_err = mean_err(fused_out.summary)
-    plain_err = mean_err(plain_out)
-    ratio = plain_best / fused_best
-    return {
-        "study": study,
-        "observer": s.observer.name,
-        "hold": s.hold,
-        "batch": batch,
-        "steps": n_steps,
-        "fused_lower_s": fused_lower_s,
-        "fused_compile_s": fused_compile_s,
-        "plain_lower_s": plain_lower_s,
-        "plain_compile_s": plain_compile_s,
-        "fused_first_call_s": fused_first_s,
-        "plain_first_call_s": plain_first_s,
-        "fused_times_s": times["fused"],
-        "plain_times_s": times["plain"],
-        "fused_wall_s": fused_best,
-        "plain_wall_s": plain_best,
-        "fused_run_steps_per_s": run_steps / fused_best,
-        "plain_run_steps_per_s": run_steps / plain_best,
-        "ratio": ratio,
-        "goal": GOALS[study],
-        "meets_goal": bool(ratio >= GOALS[study]),
-        "fused_mean_angle_error_deg": fused_err,
-        "plain_mean_angle_error_deg": plain_err,
-        "finite": bool(np.isfinite(fused_err) and np.isfinite(plain_err)),
-        "loadavg_1m": _load(),
-    }
+    errs = {}
+    for kind, out in first_out.items():
+        summary = out if kind == "plain" else out.summary
+        errs[kind] = float(np.mean(np.asarray(summary["mean_angle_error_deg"], float)))
+        best = min(times[kind])
+        row[f"{kind}_times_s"] = times[kind]
+        row[f"{kind}_wall_s"] = best
+        row[f"{kind}_run_steps_per_s"] = batch * n_steps / best
+        row[f"{kind}_mean_angle_error_deg"] = errs[kind]
+    row["ratio"] = row["fused_run_steps_per_s"] / row["plain_run_steps_per_s"]
+    if angle_only:
+        row["ratio_angle_only"] = row["fused_angle_run_steps_per_s"] / row["plain_run_steps_per_s"]
+    row["goal"] = GOALS[study]
+    row["meets_goal"] = bool(row["ratio"] >= GOALS[study])
+    row["finite"] = bool(np.all(np.isfinite(list(errs.values()))))
+    row["loadavg_1m"] = _load()
+    return row
 
 
 def main(argv=None) -> int:
@@ -137,6 +160,9 @@ def main(argv=None) -> int:
     ap.add_argument("--studies", nargs="+", default=list(STUDIES), choices=STUDIES)
     ap.add_argument("--repeats", type=int, default=None, help="timed calls of each (default 3; quick 2)")
     ap.add_argument("--min-time", type=float, default=None, help="at least this many seconds of timed calls each")
+    ap.add_argument(
+        "--no-angle-only", action="store_true", help="skip the fused program with the angle-only reducer (fused_angle)"
+    )
     ap.add_argument(
         "--out", default=str(C.RESULTS_DIR), help="directory of the JSON result (default benchmarks/results)"
     )
@@ -157,7 +183,9 @@ def main(argv=None) -> int:
     for study in args.studies:
         for b in batches:
             print(f"{study}: batch {b} x {n_steps} steps (load {_load()}) ...", flush=True)
-            rows.append(measure(study, b, n_steps, repeats=repeats, min_time=min_time))
+            rows.append(
+                measure(study, b, n_steps, repeats=repeats, min_time=min_time, angle_only=not args.no_angle_only)
+            )
     C.print_table(
         rows,
         [
@@ -167,8 +195,10 @@ def main(argv=None) -> int:
             "fused_compile_s",
             "plain_compile_s",
             "fused_run_steps_per_s",
+            "fused_angle_run_steps_per_s",
             "plain_run_steps_per_s",
             "ratio",
+            "ratio_angle_only",
             "goal",
             "loadavg_1m",
         ],
@@ -176,7 +206,13 @@ def main(argv=None) -> int:
     )
     C.print_table(
         rows,
-        ["study", "batch", "fused_mean_angle_error_deg", "plain_mean_angle_error_deg"],
+        [
+            "study",
+            "batch",
+            "fused_mean_angle_error_deg",
+            "fused_angle_mean_angle_error_deg",
+            "plain_mean_angle_error_deg",
+        ],
         title="Mean angle error over runs (deg; different noise streams, same distribution)",
     )
     meta["machine"]["loadavg_1_5_15_end"] = C.machine_info()["loadavg_1_5_15"]
@@ -186,11 +222,13 @@ def main(argv=None) -> int:
             "batches": batches,
             "steps": n_steps,
             "studies": args.studies,
+            "angle_only": not args.no_angle_only,
             "repeats": repeats,
             "min_time_s": min_time,
             "dt_s": 0.01,
             "dtype": "float64",
-            "timing": "AOT-compiled functions, one warm-up call each, then fused and plain called alternately; "
+            "timing": "AOT-compiled functions, one warm-up call each, then fused, fused_angle and plain called in "
+            "turn; "
             "wall = best call; run_steps_per_s = batch * steps / wall; ratio = fused / plain run-steps per second",
         },
         "rows": rows,

@@ -150,7 +150,8 @@ def test_plain_vs_fused_tiny(tmp_path):
     data = json.loads(path.read_text())
     (row,) = data["rows"]
     assert row["study"] == "complementary" and row["batch"] == 2 and row["steps"] == 20
-    assert row["finite"] and row["ratio"] > 0 and row["fused_compile_s"] > 0
+    assert row["finite"] and row["ratio"] > 0 and row["ratio_angle_only"] > 0 and row["fused_compile_s"] > 0
     assert data["meta"]["versions"]["jax"] and data["meta"]["machine"]["loadavg_1_5_15"] is not None
     # equal in distribution: noise-free scenario, so the angle errors are identical
-    np.testing.assert_allclose(row["fused_mean_angle_error_deg"], row["plain_mean_angle_error_deg"], rtol=1e-9)
+    for kind in ("fused", "fused_angle"):
+        np.testing.assert_allclose(row[f"{kind}_mean_angle_error_deg"], row["plain_mean_angle_error_deg"], rtol=1e-9)
