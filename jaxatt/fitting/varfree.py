@@ -78,6 +78,7 @@ __all__ = [
     "ERROR_VECTORS",
     "tracked_coordinates",
     "make_predict_fn",
+    "PredictFn",
     "predict",
     "predict_study",
     "make_loss_fn",
@@ -125,6 +126,13 @@ def _coordinate_names(tree) -> list:
         else:
             names.extend(f"{key}[{', '.join(map(str, ix))}]" for ix in np.ndindex(*shape))
     return names
+
+
+def _plain(name: str) -> str:
+    """A coordinate or leaf name without the path punctuation of ``keystr``: ``.r_hat[0, 1]`` -> ``r_hat[0, 1]``,
+    ``['x']`` -> ``x``."""
+    name = name.replace("['", ".").replace("']", "")
+    return name[1:] if name.startswith(".") else name
 
 
 def _jacobian(f, n: int, dtype, has_aux: bool = False):
@@ -311,9 +319,16 @@ def linearised_observer(observer: Observer, hold: str, active: Tuple[int, ...], 
         return LinState(new, s.sample, p_new, c_new, leak), LinOut(out, tuple(jo), cov)
 
     def output(p, s: LinState) -> LinOut:
-        out = engine.initial_output(observer, p, s.x, s.sample, jnp.ones((), s.p.dtype))
-        dout = tuple(jnp.zeros(jnp.shape(a) + (nv,), s.p.dtype) for a in _float_leaves(out))
-        return LinOut(out, dout, jnp.zeros((nv, nv), s.p.dtype))
+        """Estimate 0 (``init``'s) with its derivative in the tracked coordinates (covariance ``s.p``)."""
+        flat_x = _flat(s.x)
+        one = jnp.ones((), flat_x.dtype)
+
+        def f(v):
+            out = engine.initial_output(observer, p, _with_flat(s.x, flat_x.at[act].add(v[:na])), s.sample, one)
+            return tuple(_float_leaves(out)), out
+
+        _, jo, out = _jacobian(f, nv, flat_x.dtype, has_aux=True)
+        return LinOut(out, tuple(jo), _cov_v(s.p, s.c, nc, prev, nxt))
 
     return Observer(init=init, step=step, name=f"{observer.name} (linearised)", output=output)
 
@@ -336,7 +351,7 @@ def _euler_deg(truth, out):
 #: Error vectors whose squared norm is a pointwise loss of :mod:`jaxatt.fitting.losses`, by that loss's name.
 ERROR_VECTORS: Dict[str, Callable] = {"angle_sq": _rotvec_deg, "euler_sq": _euler_deg}
 
-# Trapezoid nodes in y = log(s tr) for expected_norm (|y| <= 40, step 0.4: relative error < 1e-7).
+# Trapezoid nodes in y = log(s tr) for expected_norm (|y| <= 40, step 0.4: relative error about 1e-8).
 _Y = np.linspace(-40.0, 40.0, 201)
 
 
@@ -402,7 +417,9 @@ def expected_reducer(windows: Tuple[Tuple[str, float, float], ...], kind="angle_
         z = jnp.zeros((nw,), dtype)
         named = {}
         if errors_fn is not None:
-            named = {k: jnp.zeros((nw, int(np.prod(jnp.shape(a)))), dtype) for k, a in errors_fn(truth0, lo.out).items()}
+            named = {
+                k: jnp.zeros((nw, int(np.prod(jnp.shape(a)))), dtype) for k, a in errors_fn(truth0, lo.out).items()
+            }
         rec = None
         if every:
             mu, sq, nrm, _ = moments(truth0, lo)
@@ -446,8 +463,12 @@ def tracked_coordinates(observer: Observer, scenario, params, *, dt: float, hold
     if track is not None:
         if isinstance(track, str) and track == "all":
             return tuple(range(n)), names
-        pre = (track,) if isinstance(track, str) else tuple(track)
-        want = [i for i, nm in enumerate(names) if any(nm.startswith(("." + q) if q[0] != "." else q) for q in pre)]
+        pre = tuple(_plain(q) for q in ((track,) if isinstance(track, str) else tuple(track)))
+        want = [
+            i
+            for i, nm in enumerate(names)
+            if any(_plain(nm) == q or _plain(nm).startswith((q + "[", q + ".")) for q in pre)
+        ]
         if not want:
             raise ValueError(f"track: no state coordinate starts with {pre}; coordinates: {sorted(set(names))[:20]}")
         return tuple(want), names
@@ -526,6 +547,18 @@ def _summary_post(names: Tuple[str, ...]):
     return post
 
 
+class PredictFn(NamedTuple):
+    """``fn(scenario, params) -> dict`` of :func:`make_predict_fn`, with the names of the tracked coordinates
+    and the windows."""
+
+    compiled: Callable
+    tracked: Tuple[str, ...]
+    windows: Tuple[Tuple[str, float, float], ...]
+
+    def __call__(self, scenario, params) -> dict:
+        return self.compiled(scenario, params, jnp.zeros((1, 2), jnp.uint32))
+
+
 def make_predict_fn(
     observer: Observer,
     scenario,
@@ -586,15 +619,7 @@ def make_predict_fn(
         step_remat=bool(segment) if step_remat is None else bool(step_remat),
         keep_state=True,
     )
-    batch = jnp.zeros((1, 2), jnp.uint32)
-    tracked = tuple(names[i] for i in active)
-
-    def predict_fn(scenario, params):
-        return fn(scenario, params, batch)
-
-    predict_fn.tracked = tracked  # type: ignore[attr-defined]
-    predict_fn.windows = wins  # type: ignore[attr-defined]
-    return predict_fn
+    return PredictFn(fn, tuple(names[i] for i in active), wins)
 
 
 def _report(res: dict, wins, tracked) -> dict:
@@ -653,7 +678,7 @@ def predict(
         track=track,
         every=every,
     )
-    res = _report(fn(scenario, params), fn.windows, fn.tracked)  # type: ignore[attr-defined]
+    res = _report(fn(scenario, params), fn.windows, fn.tracked)
     if res["leak"] > leak_tol:
         raise ValueError(
             f"{observer.name}: an untracked state coordinate moved with the noise (derivative {res['leak']:.3g}); "
@@ -732,7 +757,6 @@ def make_loss_fn(
         val = jnp.sum(jnp.asarray(weights, r["mean_sq_deg2"].dtype) * r["mean_sq_deg2"])
         return val, {"window_loss": r["mean_sq_deg2"], "window_angle_deg": r["mean_deg"], "leak": r["leak"]}
 
-    loss.tracked = fn.tracked  # type: ignore[attr-defined]
     return loss
 
 
@@ -759,4 +783,3 @@ def varfree_objective(setup, bound, spec, *, dtype=None, checkpoint="auto", step
         return loss, {**aux, "metric": aux["window_angle_deg"][0]}
 
     return objective
-
