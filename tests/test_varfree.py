@@ -8,6 +8,7 @@ import math
 from typing import NamedTuple
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -216,27 +217,55 @@ def test_batista_ges_matches_monte_carlo():
 # ------------------------------------------------------------------------------------------------------------
 # Gradient
 # ------------------------------------------------------------------------------------------------------------
+#: the short batista-ges set-up of the gradient and fit tests (the same, so the fit reuses the compiled gradient)
+SHORT_GES = {"duration": 4.0, "r_hat_0": (1, 0, 0, 0, 1, 0, 0, 0, 1)}
+
+
 def test_gradient_matches_finite_differences():
-    """d loss / d gains by reverse mode through the checkpointed scan of the linearised observer equals central
-    differences, for batista-ges (gain_z, the Earth-rate schedule) on a 4-s run from R^(0) = I."""
-    s = studies.get("batista-ges").setup(duration=4.0, r_hat_0=(1, 0, 0, 0, 1, 0, 0, 0, 1))
-    spec = losses.loss_spec("angle_sq", steady_start=1.0)
-    f = V.make_loss_fn(s.observer, s.scenario, s.params, duration=s.duration, dt=s.dt, spec=spec, checkpoint=100)
+    """The fitter's variance-free objective (jaxatt.fitting.varfree.varfree_objective with the registry's
+    parametrization of batista-ges: log alpha1 / alpha2 per Table-1 interval, gain_z by Cholesky factor, and the
+    study's loss window t >= 2/3 of the run): its gradient by reverse mode through the checkpointed scan of the
+    linearised observer equals central differences along random directions of the unconstrained parameters (a
+    4-s run from R^(0) = I)."""
+    from jaxatt.fitting import fitter
+    from jaxatt.observers import registry
 
-    def loss(log_gz, log_a2):
-        p = s.params._replace(gain_z=s.params.gain_z * jnp.exp(log_gz), alpha2=s.params.alpha2 * jnp.exp(log_a2))
-        return f(s.scenario, p)[0]
+    s = studies.get("batista-ges").setup(**SHORT_GES)
+    bound = fitter._parametrization(
+        registry.get(s.entry), s.params, tune=None, freeze=(), masks=None, method=None, transforms=None
+    )
+    spec = losses.loss_spec("angle_sq", steady_start=s.loss_windows["steady"][0])  # as fit builds it
+    obj = V.varfree_objective(s, bound, spec)
+    theta = bound.init(jnp.float64)
+    vg = jax.jit(jax.value_and_grad(obj, has_aux=True))
+    batch = jnp.zeros(())
+    (loss0, aux), g = vg(theta, batch)
+    assert np.isfinite(float(loss0)) and float(aux["leak"]) == 0.0
+    flat_g = jax.flatten_util.ravel_pytree(g)[0]
+    flat, unravel = jax.flatten_util.ravel_pytree(theta)
+    rng = np.random.default_rng(0)
+    h = 1e-5
+    for _ in range(2):
+        d = jnp.asarray(rng.normal(size=flat.shape))
+        fd = (vg(unravel(flat + h * d), batch)[0][0] - vg(unravel(flat - h * d), batch)[0][0]) / (2 * h)
+        np.testing.assert_allclose(float(flat_g @ d), float(fd), rtol=1e-5)
+        assert abs(float(fd)) > 1e-6 * float(loss0)
 
-    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(0.0, 0.0)
-    h = 1e-4
-    for i, gi in enumerate(g):
-        e = [0.0, 0.0]
-        e[i] = h
-        up = loss(*e)
-        e[i] = -h
-        fd = (up - loss(*e)) / (2 * h)
-        np.testing.assert_allclose(gi, fd, rtol=1e-5)
-        assert abs(float(gi)) > 0
+
+def test_fit_with_the_variance_free_objective(tmp_path):
+    """jaxatt.fit on a study with objective="varfree": no runs, no validation; the loss falls over two Adam steps
+    (the set-up of the gradient test) and the gains file records the objective."""
+    import jaxatt
+    from jaxatt.fitting import gainsfile
+
+    out = tmp_path / "g.json"
+    res = jaxatt.fit(data="batista-ges", objective="varfree", steps=2, lr=0.05, out=str(out), config=SHORT_GES)
+    losses_ = [h["train_loss"] for h in res.history if "train_loss" in h]
+    assert len(losses_) == 2 and losses_[1] < losses_[0]
+    d = gainsfile.read(out)
+    assert d["settings"]["objective"] == "varfree" and "train_runs" not in d["settings"]
+    with pytest.raises(ValueError, match="objective must be 'montecarlo' or 'varfree'"):
+        jaxatt.fit(data="batista-ges", objective="nope", steps=1)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -136,14 +136,14 @@ def _plain(name: str) -> str:
 
 
 def _jacobian(f, n: int, dtype, has_aux: bool = False):
-    """(f(0), df/dv at 0 with the tangent axis last[, aux]) of ``f`` on R^n (forward mode: n tangents)."""
+    """(f(0), df/dv at 0 with the tangent axis last[, aux]) of ``f`` on R^n: forward mode, ``vmap`` of ``jvp`` over
+    the n unit tangents (the primal is computed once; nested in an outer ``jvp`` or ``grad`` this stays cheaper
+    than ``jax.linearize``)."""
     z = jnp.zeros((n,), dtype)
+    eye = jnp.eye(n, dtype=dtype)
     if has_aux:
-        y, lin, aux = jax.linearize(f, z, has_aux=True)
-    else:
-        y, lin = jax.linearize(f, z)
-    jac = jax.vmap(lin, out_axes=-1)(jnp.eye(n, dtype=dtype))
-    return (y, jac, aux) if has_aux else (y, jac)
+        return jax.vmap(lambda t: jax.jvp(f, (z,), (t,), has_aux=True), out_axes=(None, -1, None))(eye)
+    return jax.vmap(lambda t: jax.jvp(f, (z,), (t,)), out_axes=(None, -1))(eye)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -386,12 +386,15 @@ class _Acc(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def expected_reducer(windows: Tuple[Tuple[str, float, float], ...], kind="angle_sq", errors_fn=None, every: int = 0):
+def expected_reducer(
+    windows: Tuple[Tuple[str, float, float], ...], kind="angle_sq", errors_fn=None, every: int = 0, mean_norm=True
+):
     """The engine reducer of the nominal run: per window ((name, start_s, end_s), ...; start <= t < end), the
     sums over the estimates of E|e|^2 (deg^2), E|e| (deg) and |mu|^2 of the error vector ``kind`` (a key of
     :data:`ERROR_VECTORS` or a hashable ``fn(truth, out) -> (d,)``), and with ``errors_fn`` (named error
     vectors, :func:`jaxatt.montecarlo.monte_carlo`'s) the sums of each element's E[e_i^2]. ``every``: record
-    (t, E|e|^2, E|e|, mu) of every ``every``-th estimate."""
+    (t, E|e|^2, E|e|, mu) of every ``every``-th estimate. ``mean_norm=False`` skips E|e| (NaN; a loss needs only
+    E|e|^2, and its reverse pass is then cheaper)."""
     vec = ERROR_VECTORS[kind] if isinstance(kind, str) else kind
     starts = np.asarray([w[1] for w in windows], float)
     ends = np.asarray([w[2] for w in windows], float)
@@ -410,7 +413,8 @@ def expected_reducer(windows: Tuple[Tuple[str, float, float], ...], kind="angle_
         s = g @ lo.cov @ g.T
         sq = jnp.sum(mu * mu) + jnp.trace(s)
         named_sq = {k: named0[k] ** 2 + jnp.einsum("iv,vw,iw->i", named_g[k], lo.cov, named_g[k]) for k in named0}
-        return mu, sq, expected_norm(mu, s), named_sq
+        nrm = expected_norm(mu, s) if mean_norm else jnp.full((), jnp.nan, dtype)
+        return mu, sq, nrm, named_sq
 
     def init(t0, truth0, lo):
         dtype = lo.cov.dtype
@@ -575,6 +579,7 @@ def make_predict_fn(
     step_remat: Optional[bool] = None,
     track=None,
     every: int = 0,
+    mean_norm: bool = True,
 ):
     """``fn(scenario, params) -> dict``: the expected errors of ``observer`` on ``scenario`` (see the module
     docstring), jitted and differentiable in ``params`` (and the scenario's arrays).
@@ -589,6 +594,7 @@ def make_predict_fn(
     ``scenario`` and ``params`` given here choose the tracked coordinates (``track``) and the structure; the
     returned function takes new values of both. ``checkpoint`` / ``step_remat``: as
     :func:`jaxatt.fitting.losses.make_loss_fn` (needed for ``jax.grad`` over long runs; off by default).
+    ``mean_norm=False``: skip E|e| (``mean_deg`` NaN).
     """
     dt = float(dt)
     if not (math.isfinite(dt) and dt > 0):
@@ -610,7 +616,7 @@ def make_predict_fn(
     fn = engine.compiled(
         lin,
         Nominal(n_steps, dt, sim_dtype),
-        expected_reducer(wins, kind, errors_fn, every),
+        expected_reducer(wins, kind, errors_fn, every, bool(mean_norm)),
         None,
         post=_summary_post(tuple(w[0] for w in wins)),
         hold=hold,
@@ -733,8 +739,9 @@ def make_loss_fn(
     """``loss(scenario, params) -> (loss, aux)``: the expectation over the noise of the Monte Carlo loss of
     :func:`jaxatt.fitting.losses.make_loss_fn` for the :class:`~jaxatt.fitting.losses.LossSpec` ``spec`` (kind
     ``"angle_sq"`` or ``"euler_sq"``: sum over windows of weight x window mean of E|e|^2, deg^2), to first order
-    in the noise and without sampling noise. ``aux``: ``window_loss`` (n_windows,), ``window_angle_deg``
-    (n_windows,: window means of E|e|, deg), ``leak``. Differentiable in ``params``; checkpointed for long runs."""
+    in the noise and without sampling noise. ``aux``: ``window_loss`` (n_windows,), ``window_rms_deg``
+    (n_windows,: sqrt of ``window_loss``, deg), ``leak``. Differentiable in ``params``; checkpointed for long runs
+    (the reverse pass stores one carry per segment, :func:`jaxatt.engine.segment_length`)."""
     _check_kind(spec.kind)
     fn = make_predict_fn(
         observer,
@@ -749,13 +756,14 @@ def make_loss_fn(
         checkpoint=checkpoint,
         step_remat=step_remat,
         track=track,
+        mean_norm=False,
     )
     weights = np.asarray([float(w[3]) for w in spec.windows])
 
     def loss(scenario, params):
         r = fn(scenario, params)
         val = jnp.sum(jnp.asarray(weights, r["mean_sq_deg2"].dtype) * r["mean_sq_deg2"])
-        return val, {"window_loss": r["mean_sq_deg2"], "window_angle_deg": r["mean_deg"], "leak": r["leak"]}
+        return val, {"window_loss": r["mean_sq_deg2"], "window_rms_deg": jnp.sqrt(r["mean_sq_deg2"]), "leak": r["leak"]}
 
     return loss
 
@@ -763,7 +771,7 @@ def make_loss_fn(
 def varfree_objective(setup, bound, spec, *, dtype=None, checkpoint="auto", step_remat=None, track=None):
     """``objective(theta, batch) -> (loss, aux)`` for :func:`jaxatt.fitting.fitter.optimize`: the variance-free
     loss (:func:`make_loss_fn`) of a study set-up's observer at the gains ``bound.constrain(theta)``; ``batch`` is
-    ignored (nothing is sampled). ``aux["metric"]``: the window mean of E|e| (deg) over the first window."""
+    ignored (nothing is sampled). ``aux["metric"]``: the RMS error (deg) over the first window."""
     f = make_loss_fn(
         setup.observer,
         setup.scenario,
@@ -780,6 +788,6 @@ def varfree_objective(setup, bound, spec, *, dtype=None, checkpoint="auto", step
 
     def objective(theta, batch=None):
         loss, aux = f(setup.scenario, bound.constrain(theta))
-        return loss, {**aux, "metric": aux["window_angle_deg"][0]}
+        return loss, {**aux, "metric": aux["window_rms_deg"][0]}
 
     return objective
