@@ -77,10 +77,15 @@ def _toy_error(truth, out):
     return jnp.atleast_1d(out["x"] - truth.x)
 
 
-def _toy_exact(a, sigma, offset, n, hold):
-    """E[e_k^2], k = 0 ... n, by writing e_k as weights on the noises n_0 ... n_n."""
-    w = np.zeros(n + 1)
-    w[0] = sigma
+def _toy_initial(p, z):
+    """A random initial offset: 0.2 z, z ~ N(0, 1)."""
+    return {**p, "offset": p["offset"] + 0.2 * z[0]}
+
+
+def _toy_exact(a, sigma, offset, n, hold, sigma0=0.0):
+    """E[e_k^2], k = 0 ... n, by writing e_k as weights on the noises n_0 ... n_n and the initial z."""
+    w = np.zeros(n + 2)
+    w[0], w[-1] = sigma, sigma0
     out = [offset**2 + np.sum(w**2)]
     mean = offset
     for k in range(n):
@@ -106,8 +111,12 @@ def test_linear_filter_exact(hold):
     exact = _toy_exact(a, sigma, offset, n, hold)
     np.testing.assert_allclose(res["records"]["mean_sq"], exact, rtol=1e-12)
     assert res["tracked"] == [".x"] and res["leak"] == 0.0
-    # the window mean over estimates 1 ... n, and E|e| of a 1-D Gaussian (folded normal)
+    # the window mean over estimates 1 ... n
     np.testing.assert_allclose(res["windows"]["all"]["mean_sq_deg2"], exact[1:].mean(), rtol=1e-12)
+    # a random initial offset (InitialNoise) adds its decaying variance
+    init = V.InitialNoise(_toy_initial, 1)
+    res = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, initial=init)
+    np.testing.assert_allclose(res["records"]["mean_sq"], _toy_exact(a, sigma, offset, n, hold, 0.2), rtol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -38,9 +38,11 @@ When it holds: the errors must stay small enough for the linearisation about the
 converging observer; noise small against the observer's nonlinearity; no switching of a discrete branch between
 the nominal and the noisy runs). Not covered:
 
-* Random initial estimates (a study's ``init_params``, e.g. the NLIO Case 1 uniform initial attitude): the
-  nominal run starts from the params' own initial estimate, and the prediction holds once the random start is
-  forgotten (a converged steady-state window); during the transient the errors are far outside the linear range.
+* Large random initial estimates (a study's ``init_params``, e.g. the NLIO Case 1 uniform initial attitude):
+  the nominal run starts from the params' own initial estimate, and the prediction holds once the random start
+  is forgotten (a converged steady-state window); during the transient the errors are far outside the linear
+  range. Small random initial errors that are a smooth map of standard normals are linearised like the sensor
+  noise (:class:`InitialNoise`: their covariance enters P_0).
 * Noise that is not a linear map of Gaussian numbers (the mixture of :mod:`jaxatt.sim.ahrs` with ``mix_prob > 0``
   and ``mix="mixture"`` picks its component by comparing a normal number with a threshold, whose derivative is
   zero: only the narrow component would be seen). ``mix="sum"`` is linear and exact.
@@ -73,6 +75,7 @@ __all__ = [
     "LinState",
     "LinOut",
     "linearised_observer",
+    "InitialNoise",
     "expected_reducer",
     "expected_norm",
     "ERROR_VECTORS",
@@ -282,12 +285,25 @@ def _step_jacobian(observer: Observer, hold: str, act, n_channels: int, p, x, u,
     return jn, jo, new, out
 
 
+class InitialNoise(NamedTuple):
+    """A random initial estimate as a smooth map of standard normals: ``fn(params, z) -> params`` with z ~ N(0, I)
+    of length ``n`` (e.g. ``p._replace(r_hat_0=p.r_hat_0 @ so3.exp(sigma * z))`` for Gaussian initial attitude
+    errors of ``sigma`` rad per axis); ``fn(params, 0)`` must be ``params``. Its Jacobian adds
+    J J^T to the covariance of ``init``'s state. ``fn`` must be hashable (a module-level function)."""
+
+    fn: Callable
+    n: int
+
+
 @functools.lru_cache(maxsize=64)
-def linearised_observer(observer: Observer, hold: str, active: Tuple[int, ...], n_channels: int) -> Observer:
+def linearised_observer(
+    observer: Observer, hold: str, active: Tuple[int, ...], n_channels: int, initial: Optional[InitialNoise] = None
+) -> Observer:
     """``observer`` stepped on :class:`Linearised` samples with the covariance of its tracked coordinates
     ``active`` (indices into the flattened floating leaves of its state) propagated alongside (the recursion of
-    the module docstring). State :class:`LinState`, output :class:`LinOut`. Cached on its arguments, so the
-    jitted scan of :mod:`jaxatt.engine` is reused."""
+    the module docstring); ``initial`` adds the covariance of a random initial estimate. State
+    :class:`LinState`, output :class:`LinOut`. Cached on its arguments, so the jitted scan of
+    :mod:`jaxatt.engine` is reused."""
     engine.check_hold(hold)
     act = np.asarray(active, int)
     na, nc = len(act), int(n_channels)
@@ -306,7 +322,11 @@ def linearised_observer(observer: Observer, hold: str, active: Tuple[int, ...], 
         x0 = observer.init(p, s0)
         _, j0 = _jacobian(lambda n: _flat(observer.init(p, _perturb(s0, lin0.jac, n))), nc, dtype)
         ja = j0[act]
-        return LinState(x0, s0, ja @ ja.T, ja, untracked(j0).astype(ja.dtype))
+        p0, leak = ja @ ja.T, untracked(j0)
+        if initial is not None:
+            _, jz = _jacobian(lambda z: _flat(observer.init(initial.fn(p, z), s0)), int(initial.n), dtype)
+            p0, leak = p0 + jz[act] @ jz[act].T, jnp.maximum(leak, untracked(jz))
+        return LinState(x0, s0, p0, ja, leak.astype(ja.dtype))
 
     def step(p, s: LinState, u, dt):
         jn, jo, new, out = _step_jacobian(observer, hold, act, nc, p, s.x, u, dt)
@@ -449,7 +469,9 @@ def expected_reducer(
 # ------------------------------------------------------------------------------------------------------------
 # Tracked coordinates
 # ------------------------------------------------------------------------------------------------------------
-def tracked_coordinates(observer: Observer, scenario, params, *, dt: float, hold: str = "zoh", track=None, dtype=None):
+def tracked_coordinates(
+    observer: Observer, scenario, params, *, dt: float, hold: str = "zoh", track=None, dtype=None, initial=None
+):
     """(indices, names) of the coordinates of the flattened floating state that the noise can reach.
 
     ``track``: None (found from ``init`` and the first step: a coordinate is tracked if the noise moves it, or a
@@ -477,7 +499,7 @@ def tracked_coordinates(observer: Observer, scenario, params, *, dt: float, hold
             raise ValueError(f"track: no state coordinate starts with {pre}; coordinates: {sorted(set(names))[:20]}")
         return tuple(want), names
     everything = tuple(range(n))
-    obs = linearised_observer(observer, hold, everything, nc)
+    obs = linearised_observer(observer, hold, everything, nc, initial)
 
     @jax.jit
     def probe(p, scn):
@@ -485,12 +507,12 @@ def tracked_coordinates(observer: Observer, scenario, params, *, dt: float, hold
         _, lin1, _, _, _ = src.advance(scn, scn.r0, jnp.zeros((), jnp.int32), None, ())
         u = lin0 if hold == "zoh" else (lin1 if hold == "next" else Interval(lin0, lin1))
         j = _step_jacobian(observer, hold, np.arange(n), nc, p, s0.x, u, jnp.asarray(dt, dtype))[0]
-        return s0.c, j
+        return s0.p, j
 
-    j0, j = probe(p, scn)
-    j0, j = np.asarray(j0), np.asarray(j)
+    p0, j = probe(p, scn)
+    p0, j = np.asarray(p0), np.asarray(j)
     a, b = j[:, :n] - np.eye(n), j[:, n:]
-    reach = np.any(j0 != 0, axis=1) | np.any(b != 0, axis=1)
+    reach = np.any(p0 != 0, axis=1) | np.any(b != 0, axis=1)
     while True:
         new = reach | np.any(a[:, reach] != 0, axis=1)
         if np.array_equal(new, reach):
@@ -580,6 +602,7 @@ def make_predict_fn(
     track=None,
     every: int = 0,
     mean_norm: bool = True,
+    initial: Optional[InitialNoise] = None,
 ):
     """``fn(scenario, params) -> dict``: the expected errors of ``observer`` on ``scenario`` (see the module
     docstring), jitted and differentiable in ``params`` (and the scenario's arrays).
@@ -594,7 +617,8 @@ def make_predict_fn(
     ``scenario`` and ``params`` given here choose the tracked coordinates (``track``) and the structure; the
     returned function takes new values of both. ``checkpoint`` / ``step_remat``: as
     :func:`jaxatt.fitting.losses.make_loss_fn` (needed for ``jax.grad`` over long runs; off by default).
-    ``mean_norm=False``: skip E|e| (``mean_deg`` NaN).
+    ``mean_norm=False``: skip E|e| (``mean_deg`` NaN). ``initial``: a random initial estimate
+    (:class:`InitialNoise`; default none: the params' own).
     """
     dt = float(dt)
     if not (math.isfinite(dt) and dt > 0):
@@ -607,8 +631,10 @@ def make_predict_fn(
     wins = _windows(windows)
     obs_dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     sim_dtype = jnp.result_type(float)
-    active, names = tracked_coordinates(observer, scenario, params, dt=dt, hold=hold, track=track, dtype=obs_dtype)
-    lin = linearised_observer(observer, hold, active, int(scenario.n_channels))
+    active, names = tracked_coordinates(
+        observer, scenario, params, dt=dt, hold=hold, track=track, dtype=obs_dtype, initial=initial
+    )
+    lin = linearised_observer(observer, hold, active, int(scenario.n_channels), initial)
     segment = engine.segment_length(n_steps, checkpoint)
     every = int(every)
     if every and segment and segment % every:
@@ -663,13 +689,15 @@ def predict(
     track=None,
     every: int = 0,
     leak_tol: float = 0.0,
+    initial: Optional[InitialNoise] = None,
 ) -> dict:
     """The expected errors of ``observer`` (params ``params``) on ``scenario`` over ``duration`` s at steps of
     ``dt`` s, as plain numbers: ``windows.<name>.{mean_sq_deg2, rms_deg, mean_deg, bias_rms_deg, count,
     errors_rms}`` (RMS = sqrt of the window mean of E|e|^2; ``mean_deg`` the window mean of E|e|, comparable with
     :func:`jaxatt.montecarlo.monte_carlo`'s ``mean_angle_error_deg`` for ``kind="angle_sq"``), ``leak``,
     ``tracked`` (coordinate names) and, with ``every``, ``records`` (numpy arrays). ValueError when an untracked
-    coordinate moved by more than ``leak_tol`` (pass ``track="all"``). See :func:`make_predict_fn`."""
+    coordinate moved by more than ``leak_tol`` (pass ``track="all"``). ``initial``: a random initial estimate
+    (:class:`InitialNoise`). See :func:`make_predict_fn`."""
     fn = make_predict_fn(
         observer,
         scenario,
@@ -683,6 +711,7 @@ def predict(
         dtype=dtype,
         track=track,
         every=every,
+        initial=initial,
     )
     res = _report(fn(scenario, params), fn.windows, fn.tracked)
     if res["leak"] > leak_tol:
