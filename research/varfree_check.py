@@ -27,8 +27,12 @@ Cases:
   constant references with gyro noise 0.01 rad/s and vector noise 0.05 per sample (120 s, window t >= 80 s);
   gain 0.6 1/s and 2 1/s.
 
+``--linear-range``: where the linearisation stops holding (:func:`linear_range`; results in
+research/results/varfree-linear-range.json).
+
 Usage: python research/varfree_check.py --case batista-ges [--runs 1000] [--seed 0] [--chunk 100] [--resume]
        python research/varfree_check.py --table        (prints the table of every saved case)
+       python research/varfree_check.py --linear-range --runs 96
 """
 
 from __future__ import annotations
@@ -192,6 +196,61 @@ def run_case(case: str, runs: int, seed: int, chunk: int, resume: bool, labels=N
     return payload
 
 
+#: noise scales of the linear-range check (x Section IV's noise)
+RANGE_SCALES = (0.1, 0.3, 1.0, 2.0, 4.0)
+
+
+def linear_range(runs: int, seed: int) -> dict:
+    """Where the linearisation stops holding: batista-ges started at the truth (R^(0) = I, x2^(0) = m x omega_E)
+    with one fast schedule (alpha1 = 2.5 1/s, alpha2 = 0.25 1/s^2, gain_z x100; the set-up of
+    tests/test_varfree.py), 200 s, window 50-200 s, at noise x RANGE_SCALES: predicted and measured RMS as the
+    errors grow from ~0.1 deg to tens of degrees."""
+    import jax.numpy as jnp
+
+    base = studies.get("batista-ges").setup()
+    x2 = np.cross(np.asarray(base.scenario.ref_nav), np.asarray(base.scenario.earth_rate_nav))
+    path = RESULTS / "varfree-linear-range.json"
+    payload = {"what": linear_range.__doc__, "runs": runs, "seed": seed, "environment": io.environment(), "points": []}
+    for k in RANGE_SCALES:
+        s = studies.get("batista-ges").setup(
+            duration=200.0, r_hat_0=(1, 0, 0, 0, 1, 0, 0, 0, 1), x2_0=tuple(x2), noise_scale=k
+        )
+        p = s.params._replace(
+            switch_times=jnp.zeros((0,)),
+            alpha1=jnp.array([2.5]),
+            alpha2=jnp.array([0.25]),
+            gain_z=s.params.gain_z * 100,
+        )
+        pred = V.predict(
+            s.observer, s.scenario, p, duration=s.duration, dt=s.dt, windows=(("steady", 50.0, math.inf),)
+        )["windows"]["steady"]
+        f = losses.make_loss_fn(
+            s.observer,
+            duration=s.duration,
+            dt=s.dt,
+            spec=losses.loss_spec("angle_sq", steady_start=50.0),
+            checkpoint=False,
+        )
+        _, aux = f(s.scenario, p, montecarlo.run_keys(seed, range(runs)))
+        mc = summary(np.asarray(aux["window_loss"][0]), np.asarray(aux["window_angle_deg"][0]))
+        point = {
+            "noise_scale": k,
+            "predicted_rms_deg": pred["rms_deg"],
+            "predicted_mean_deg": pred["mean_deg"],
+            "mc": mc,
+            "ratio_rms": pred["rms_deg"] / mc["rms_deg"],
+            "ratio_mean": pred["mean_deg"] / mc["mean_deg"],
+        }
+        payload["points"].append(point)
+        io.write_json(path, payload)
+        print(
+            f"noise x{k}: predicted RMS {pred['rms_deg']:.4f}, measured {mc['rms_deg']:.4f} +- {mc['rms_se']:.4f} "
+            f"(ratio {point['ratio_rms']:.3f}); mean {pred['mean_deg']:.4f} vs {mc['mean_deg']:.4f}",
+            flush=True,
+        )
+    return payload
+
+
 def table() -> str:
     lines = [
         "| case | gains | runs | predicted RMS (deg) | measured RMS (SE) | ratio | predicted mean (deg) "
@@ -224,7 +283,11 @@ def main(argv=None):
     ap.add_argument("--chunk", type=int, default=100)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--table", action="store_true")
+    ap.add_argument("--linear-range", action="store_true", help="the linear-range check (noise scales) instead")
     a = ap.parse_args(argv)
+    if a.linear_range:
+        linear_range(a.runs, a.seed)
+        return
     if a.case:
         run_case(a.case, a.runs, a.seed, a.chunk, a.resume, a.gains)
     if a.table or not a.case:
