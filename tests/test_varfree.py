@@ -292,6 +292,14 @@ def test_bad_input():
         V.predict(TOY, scn, p, windows=(("w", 1.0, 0.5),), **kw)
     with pytest.raises(ValueError, match="track: no state coordinate starts with"):
         V.predict(TOY, scn, p, track=("nope",), **kw)
+    # a Gaussian mixture (a threshold on a normal number picks the wide component) is refused; the weighted sum
+    # of two Gaussians (mix="sum", linear in the noise) is accepted
+    from jaxatt.sim import ahrs
+
+    mixture = ahrs.AhrsScenario.make(mix_prob=0.2, mix_scale=10.0, mix="mixture")
+    with pytest.raises(ValueError, match="not a smooth function of its noise"):
+        V.check_noise_model(mixture, dt=0.01)
+    V.check_noise_model(ahrs.AhrsScenario.make(mix_prob=0.2, mix_scale=10.0, mix="sum"), dt=0.01)
     # tracking only the time leaves the filtered value untracked: the noise moves it, and the run says so
     with pytest.raises(ValueError, match="an untracked state coordinate moved"):
         V.predict(TOY, scn, p, track=("t",), **kw)

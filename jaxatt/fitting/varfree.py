@@ -11,9 +11,10 @@ What is computed (one generic mechanism for every observer and scenario of :mod:
   i.i.d. N(0, I)); its Jacobian L_k = d sample / d n at n = 0 maps the noise into the sample.
 * The **linearised observer** works in the observer's own coordinates: the floating leaves of its state pytree
   flattened (R^ in R^9 as nine numbers, quaternions as four, etc.; nothing assumes a manifold). Per step,
-  ``jax.linearize`` of ``step`` in the deviation v = [dx_k; n_k; n_{k+1}] (the noise of the sample(s) the step
-  reads: n_k with ``hold="zoh"``, n_{k+1} with ``"next"``, both with ``"linear"``) gives
-  dx_{k+1} = A_k dx_k + B0_k n_k + B1_k n_{k+1}, and the covariance recursion (a discrete Lyapunov equation)
+  forward-mode derivatives (``vmap`` of ``jvp``) of ``step`` in the deviation v = [dx_k; n_k; n_{k+1}] (the
+  noise of the sample(s) the step reads: n_k with ``hold="zoh"``, n_{k+1} with ``"next"``, both with
+  ``"linear"``) give dx_{k+1} = A_k dx_k + B0_k n_k + B1_k n_{k+1}, and the covariance recursion (a discrete
+  Lyapunov equation)
 
       Sigma_v = [[P_k, C_k, 0], [C_k^T, I, 0], [0, 0, I]],   P_{k+1} = J_k Sigma_v J_k^T,   C_{k+1} = B1_k,
 
@@ -43,13 +44,14 @@ the nominal and the noisy runs). Not covered:
   is forgotten (a converged steady-state window); during the transient the errors are far outside the linear
   range. Small random initial errors that are a smooth map of standard normals are linearised like the sensor
   noise (:class:`InitialNoise`: their covariance enters P_0).
-* Noise that is not a linear map of Gaussian numbers (the mixture of :mod:`jaxatt.sim.ahrs` with ``mix_prob > 0``
+* Noise that is not a smooth map of Gaussian numbers (the mixture of :mod:`jaxatt.sim.ahrs` with ``mix_prob > 0``
   and ``mix="mixture"`` picks its component by comparing a normal number with a threshold, whose derivative is
-  zero: only the narrow component would be seen). ``mix="sum"`` is linear and exact.
+  zero: only the narrow component would be seen). Checked when the function is built: samples drawn with a few
+  noise blocks must match their linearisation (ValueError otherwise). ``mix="sum"`` is linear and exact.
 * The second-order shift of the mean, E[x] - x_nominal = O(P) (negligible when the errors are small).
 
-Cost: one nominal run with (n_active + n_noise) forward tangents per step (``jax.linearize`` + ``vmap``) and a few
-n x n products; reverse mode through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
+Cost: one nominal run with (n_active + n_noise) forward tangents per step and a few n x n products; reverse mode
+through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
 (:func:`jaxatt.engine.segment_length`). It uses the one scan of :mod:`jaxatt.engine` with its own source
 (:class:`Nominal`), a wrapped observer (:func:`linearised_observer`) and a reducer (:func:`expected_reducer`).
 
@@ -80,6 +82,7 @@ __all__ = [
     "expected_norm",
     "ERROR_VECTORS",
     "tracked_coordinates",
+    "check_noise_model",
     "make_predict_fn",
     "PredictFn",
     "predict",
@@ -524,6 +527,27 @@ def tracked_coordinates(
     return idx, names
 
 
+def check_noise_model(scenario, *, dt: float, dtype=None, draws: int = 16) -> None:
+    """ValueError when the scenario's first sample is not (close to) affine in its standard-normal noise block:
+    for ``draws`` fixed normal blocks n, |sample(n) - sample(0) - L n| must stay below 10 % of |L n| (a smooth
+    noise map passes, a threshold such as a Gaussian mixture's component selector does not)."""
+    dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    scn = engine.cast_floats(scenario, dtype)
+    nc = int(scn.n_channels)
+    truth = scn.truth_at(scn.r0, jnp.zeros((), dtype))
+    lin = linearised_sample(scn, truth, dt)
+    ns = jax.random.normal(jax.random.PRNGKey(20), (draws, nc), dtype)
+    for n in ns:
+        exact = _flat(scn.sample(truth, n, dt))
+        first = _flat(_perturb(lin.sample, lin.jac, n))
+        step = float(jnp.linalg.norm(first - _flat(lin.sample)))
+        if float(jnp.linalg.norm(exact - first)) > 0.1 * step:
+            raise ValueError(
+                "the scenario's samples are not a smooth function of its noise (e.g. a Gaussian mixture's component "
+                "selector): the variance-free loss would see only their derivative at zero noise; use Monte Carlo"
+            )
+
+
 # ------------------------------------------------------------------------------------------------------------
 # Prediction and loss
 # ------------------------------------------------------------------------------------------------------------
@@ -631,6 +655,7 @@ def make_predict_fn(
     wins = _windows(windows)
     obs_dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     sim_dtype = jnp.result_type(float)
+    check_noise_model(scenario, dt=dt, dtype=obs_dtype)
     active, names = tracked_coordinates(
         observer, scenario, params, dt=dt, hold=hold, track=track, dtype=obs_dtype, initial=initial
     )
