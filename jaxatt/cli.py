@@ -249,6 +249,13 @@ def _parser() -> argparse.ArgumentParser:
         metavar="T",
         help="extra switch times (s) for the study's gain schedules, tuned from the paper's values",
     )
+    tp.add_argument(
+        "--objective",
+        choices=("montecarlo", "varfree"),
+        default="montecarlo",
+        help="montecarlo: the loss over minibatches of simulated runs; varfree: its expectation over the noise by "
+        "covariance propagation along the noise-free run (no runs, no sampling noise)",
+    )
     tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
     tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -558,6 +565,7 @@ def _tune(args) -> int:
             resume=args.resume,
             overwrite=args.overwrite,
             quiet=not _progress(args),
+            objective=args.objective,
         )
     print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)

@@ -468,6 +468,7 @@ def fit(
     checkpoint="auto",
     step_remat: Optional[bool] = None,
     devices=None,
+    objective: str = "montecarlo",
 ) -> FitResult:
     """Learn gains by gradient descent through the whole scan.
 
@@ -491,6 +492,11 @@ def fit(
         dtype: arithmetic (default: float64 when x64 is on for studies; for trials the data's).
         loss, transient_weight, config, refine_schedule, checkpoint, step_remat, devices: study options
             (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`).
+        objective: for a study, ``"montecarlo"`` (the loss averaged over minibatches of simulated runs) or
+            ``"varfree"`` (its expectation over the noise, computed without runs by covariance propagation along
+            the noise-free run, :mod:`jaxatt.fitting.varfree`: no sampling noise in the loss or its gradient, so
+            no minibatches and no validation runs; kinds ``angle_sq`` / ``euler_sq``; the study's random
+            initial estimates are not drawn).
     Returns :class:`FitResult`. Raises ValueError (one line) on bad arguments.
     """
 
@@ -552,6 +558,7 @@ def fit(
         checkpoint=checkpoint,
         step_remat=step_remat,
         devices=devices,
+        objective=objective,
     )
     if out_path is not None and final_path is not None and out_path != final_path and res.status in FINISHED:
         if io.is_main_process():  # several processes: process 0 writes the files
@@ -614,6 +621,7 @@ def _fit(
     checkpoint,
     step_remat,
     devices,
+    objective="montecarlo",
 ):
     """:func:`fit` once the gains file to write (``out_path``) and the fit to continue (``previous``) are known."""
     if isinstance(data, (str,)) or (data is not None and hasattr(data, "setup") and hasattr(data, "observers")):
@@ -649,7 +657,10 @@ def _fit(
             checkpoint=checkpoint,
             step_remat=step_remat,
             devices=devices,
+            objective=objective,
         )
+    if objective != "montecarlo":
+        raise ValueError(f"objective {objective!r} needs a study as data (recorded trials: objective='montecarlo')")
     from ..api import compute_dtype, resolve_observer
     from ..data import broad as B
 
@@ -757,6 +768,7 @@ def _fit_study(
     checkpoint,
     step_remat,
     devices,
+    objective="montecarlo",
 ):
     from .. import montecarlo, studies
     from .. import schedule as sched
@@ -795,12 +807,70 @@ def _fit_study(
         transient_end=te,
         w_transient=transient_weight,
     )
-    objective = simulated_objective(
+    if objective not in ("montecarlo", "varfree"):
+        raise ValueError(f"objective must be 'montecarlo' or 'varfree', got {objective!r}")
+    n_steps = int(round(s.duration / s.dt))
+    if objective == "varfree":
+        from . import varfree
+
+        obj = varfree.varfree_objective(s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat)
+        sampler, take, val_keys = Sampler(1, None, seed), (lambda idx: jnp.zeros(())), None
+        settings = {
+            "data": "study",
+            "objective": "varfree",
+            "study": st.name,
+            "config": io.to_jsonable(s.config._asdict()),
+            "steps": int(steps),
+            "seed": seed,
+            "lr": lr,
+            "clip": clip,
+            "schedule": schedule,
+            "loss": spec.describe(),
+            "duration_s": s.duration,
+            "dt_s": s.dt,
+            "steps_per_run": n_steps,
+            "checkpoint_segment": losses.segment_length(n_steps, checkpoint),
+            "tunable": {f: tr.describe() for f, tr in bound.transforms.items()},
+            "masks": {f: m.tolist() for f, m in bound.masks.items()},
+            "n_tunable": bound.n_free(),
+            "note": "variance-free loss (jaxatt.fitting.varfree): expectation over the noise, no runs drawn",
+        }
+        if not quiet:
+            print(
+                f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; variance-free loss "
+                f"{spec.describe()['kind']} over {s.duration:g} s at {1 / s.dt:g} Hz; the first step compiles",
+                file=sys.stderr,
+                flush=True,
+            )
+        return _run(
+            entry.name,
+            entry,
+            s.observer,
+            p0,
+            bound,
+            obj,
+            sampler,
+            take,
+            None,
+            settings,
+            steps=steps,
+            lr=lr,
+            clip=clip,
+            schedule=schedule,
+            val_every=val_every,
+            patience=patience,
+            out_path=out_path,
+            previous=previous,
+            callback=callback,
+            quiet=quiet,
+            study=st.name,
+            metric_unit="deg RMS",
+        )
+    objective_fn = simulated_objective(
         s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat, devices=devices
     )
     train_keys = montecarlo.run_keys(seed, list(range(train_runs)))
     val_keys = montecarlo.run_keys(seed, list(range(train_runs, train_runs + val_runs))) if val_runs else None
-    n_steps = int(round(s.duration / s.dt))
     settings = {
         "data": "study",
         "study": st.name,
@@ -840,7 +910,7 @@ def _fit_study(
         s.observer,
         p0,
         bound,
-        objective,
+        objective_fn,
         Sampler(train_runs, batch, seed),
         lambda idx: train_keys[np.asarray(idx)],
         val_keys,
@@ -906,6 +976,7 @@ def _run(
             "loss",
             "n_tunable",
             "schedule",
+            "objective",
         ] + (["steps"] if settings.get("schedule") == "cosine" else [])
         for k in keys:
             if old.get(k) != settings.get(k):
