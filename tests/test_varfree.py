@@ -113,6 +113,13 @@ def test_linear_filter_exact(hold):
     assert res["tracked"] == [".x"] and res["leak"] == 0.0
     # the window mean over estimates 1 ... n
     np.testing.assert_allclose(res["windows"]["all"]["mean_sq_deg2"], exact[1:].mean(), rtol=1e-12)
+    # a finite window stops the run after its last estimate (t_k < end) and one more, with the same numbers
+    w = V.predict(
+        TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, windows=(("w", 1.0, 2.0),)
+    )
+    assert len(w["records"]["mean_sq"]) == 21 and w["windows"]["w"]["count"] == 10
+    np.testing.assert_allclose(w["records"]["mean_sq"], exact[:21], rtol=1e-12)
+    np.testing.assert_allclose(w["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
     # a random initial offset (InitialNoise) adds its decaying variance
     init = V.InitialNoise(_toy_initial, 1)
     res = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, initial=init)
