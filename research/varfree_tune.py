@@ -119,8 +119,10 @@ def predict() -> None:
     io.write_json(OUT, payload)
 
 
-def evaluate(runs: int, seed: int, chunk: int) -> None:
+def evaluate(runs: int, seed: int, chunk: int, only=None) -> None:
     s, sets = gain_sets()
+    if only:
+        sets = {k: v for k, v in sets.items() if k in only}
     payload = _payload()
     ev = payload.setdefault("heldout", {"seed": seed, "runs": runs, "per_run_mean_angle_deg": {}})
     if ev.get("seed") != seed or ev.get("runs") != runs:
@@ -150,6 +152,8 @@ def evaluate(runs: int, seed: int, chunk: int) -> None:
             on_chunk=save,
         )
         save(r)
+    if "paper" not in ev["per_run_mean_angle_deg"]:
+        return
     base = np.asarray(ev["per_run_mean_angle_deg"]["paper"])
     ev["summary"] = {}
     for label, v in ev["per_run_mean_angle_deg"].items():
@@ -180,13 +184,14 @@ def main(argv=None):
     ap.add_argument("--eval-runs", type=int, default=300)
     ap.add_argument("--eval-seed", type=int, default=4000)
     ap.add_argument("--eval-chunk", type=int, default=100)
+    ap.add_argument("--sets", nargs="*", help="evaluate only these gain sets (paper, growing, varfree-tuned)")
     a = ap.parse_args(argv)
     if a.phase == "tune":
         tune(a.steps, a.lr, a.resume)
     elif a.phase == "predict":
         predict()
     else:
-        evaluate(a.eval_runs, a.eval_seed, a.eval_chunk)
+        evaluate(a.eval_runs, a.eval_seed, a.eval_chunk, a.sets)
 
 
 if __name__ == "__main__":

@@ -164,6 +164,7 @@ BAD_INPUT = [
     (["tune", "--experiment", "batista-so3", "--steps", "-1"], r"argument --steps"),
     (["tune", "--experiment", "batista-so3", "--refine-schedule", "-5"], r"argument --refine-schedule"),
     (["tune", "--experiment", "batista-so3", "--lr", "0"], r"argument --lr"),
+    (["tune", "--experiment", "batista-so3", "--objective", "nope"], r"argument --objective: invalid choice"),
     (["tune", "--experiment", "nope"], r"argument --experiment"),
     (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/keep.json"], r"not a gains file"),
     (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/absent.json", "--resume"], r"no gains"),

@@ -113,6 +113,13 @@ def test_linear_filter_exact(hold):
     assert res["tracked"] == [".x"] and res["leak"] == 0.0
     # the window mean over estimates 1 ... n
     np.testing.assert_allclose(res["windows"]["all"]["mean_sq_deg2"], exact[1:].mean(), rtol=1e-12)
+    # a finite window stops the run after its last estimate (t_k < end) and one more, with the same numbers
+    w = V.predict(
+        TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, windows=(("w", 1.0, 2.0),)
+    )
+    assert len(w["records"]["mean_sq"]) == 21 and w["windows"]["w"]["count"] == 10
+    np.testing.assert_allclose(w["records"]["mean_sq"], exact[:21], rtol=1e-12)
+    np.testing.assert_allclose(w["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
     # a random initial offset (InitialNoise) adds its decaying variance
     init = V.InitialNoise(_toy_initial, 1)
     res = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, initial=init)
@@ -177,13 +184,14 @@ def _check_against_mc(setup, params, window_start, runs, max_rel_se):
         se = mc.std(ddof=1) / math.sqrt(runs)
         assert se < max_rel_se * mc.mean(), (se, mc.mean())
         assert abs(p - mc.mean()) < 3 * se, (p, mc.mean(), se)
+    return pred
 
 
 def test_complementary_quaternion_matches_monte_carlo():
     """Trumpf et al. (2012) eq. (18) (quaternion state, normalised each step) with the gyro-bias integrator on two
     constant references, gyro noise 0.01 rad/s and vector noise 0.05 per sample: 20 s, window 10-20 s, 256 runs
     (SE about 1.3 % of E[theta^2], so 3 SE is a 4 % band)."""
-    s = studies.get("complementary").setup(
+    cfg = dict(
         scenario="two_constant",
         form="quaternion",
         gain=2.0,
@@ -193,7 +201,12 @@ def test_complementary_quaternion_matches_monte_carlo():
         r_hat_0_euler_deg=(20.0, -10.0, 30.0),
         duration=20.0,
     )
-    _check_against_mc(s, s.params, 10.0, 256, 0.02)
+    s = studies.get("complementary").setup(**cfg)
+    pred = _check_against_mc(s, s.params, 10.0, 256, 0.02)
+    # the same through the study front door
+    r = V.predict_study("complementary", windows=(("steady", 10.0, math.inf),), errors=False, **cfg)
+    np.testing.assert_allclose(r["windows"]["steady"]["mean_sq_deg2"], pred["mean_sq_deg2"], rtol=1e-12)
+    assert r["leak"] == 0.0 and ".bias[0]" in r["tracked"]
 
 
 def test_nlio_interpolated_samples_match_monte_carlo():

@@ -638,6 +638,7 @@ def make_predict_fn(
     :func:`tracked_coordinates`) and, with ``every``, ``records`` (t, mean_sq, mean_norm, mu) of every
     ``every``-th estimate.
 
+    The run stops at the last estimate a window needs (all windows finite) or at ``duration``.
     ``scenario`` and ``params`` given here choose the tracked coordinates (``track``) and the structure; the
     returned function takes new values of both. ``checkpoint`` / ``step_remat``: as
     :func:`jaxatt.fitting.losses.make_loss_fn` (needed for ``jax.grad`` over long runs; off by default).
@@ -653,6 +654,9 @@ def make_predict_fn(
     engine.check_hold(hold)
     _check_kind(kind)
     wins = _windows(windows)
+    last = max(w[2] for w in wins)
+    if math.isfinite(last):  # propagate only as far as the last window needs (t_k = k dt < end; one spare)
+        n_steps = max(1, min(n_steps, math.ceil(last / dt - 1e-9)))
     obs_dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     sim_dtype = jnp.result_type(float)
     check_noise_model(scenario, dt=dt, dtype=obs_dtype)
