@@ -76,8 +76,13 @@ sys.path.insert(0, str(HERE.parent))
 import _common as C  # noqa: E402
 
 G = 9.81
+#: Where research/broad_oof_tuning.py leaves the fold gains of the jaxatt-<name>-oof rows (not shipped).
+OOF_GAINS_DIR = C.REPO_ROOT / "research" / "results" / "broad_folds"
 #: Rows besides one ``jaxatt-<name>`` per registered recorded observer (:func:`filter_names`).
 SPECIAL = ("jaxatt-robust", "jaxatt-robust-oof", "jaxatt-mahony-broad")
+#: Registered observers with out-of-fold tuned gains (research/broad_oof_tuning.py, ``--oof-gains-dir``): one
+#: ``jaxatt-<name>-oof`` row each, scored as the robust AHRS's out-of-fold row.
+TUNED_OOF = ("vqf", "madgwick", "mahony")
 EXTERNAL = ("vqf-online", "vqf-offline", "ahrs-madgwick", "ahrs-mahony", "imufusion")
 #: The offline mode of jaxatt (forward-backward smoothing, jaxatt.smoothing): in sample / out of fold.
 OFFLINE = ("jaxatt-robust-offline", "jaxatt-robust-offline-oof", "jaxatt-vqf-offline", "jaxatt-vqf-offline-oof")
@@ -104,7 +109,7 @@ def filter_names():
     from jaxatt.observers import registry
 
     own = tuple(f"jaxatt-{n}" for n in registry.names(recorded=True) if n != "robust")
-    return SPECIAL[:2] + own + SPECIAL[2:] + OFFLINE + EXTERNAL
+    return SPECIAL[:2] + own + tuple(f"jaxatt-{n}-oof" for n in TUNED_OOF) + SPECIAL[2:] + OFFLINE + EXTERNAL
 
 
 def _triad(acc, mag, frame):
@@ -129,7 +134,9 @@ def run_vqf(tr, offline=False):
     return q, time.perf_counter() - t0
 
 
-def run_ahrs(tr, kind):
+def run_ahrs(tr, kind, beta=0.12, k_p=0.74, k_i=0.0012):
+    """ahrs' Madgwick (``beta``, rad/s) or Mahony (``k_p``, ``k_i``) from TRIAD of sample 0 (module docstring):
+    (sensor-to-ENU quaternions (N, 4), wall s of the loop)."""
     import numpy as np
     from ahrs.filters import Madgwick, Mahony
 
@@ -138,9 +145,9 @@ def run_ahrs(tr, kind):
     g, a, m = (np.asarray(x, dtype=np.float64) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag))
     dt = 1.0 / tr.rate_hz
     f = (
-        Madgwick(frequency=tr.rate_hz, beta=0.12)
+        Madgwick(frequency=tr.rate_hz, beta=beta)
         if kind == "madgwick"
-        else Mahony(frequency=tr.rate_hz, k_P=0.74, k_I=0.0012)
+        else Mahony(frequency=tr.rate_hz, k_P=k_p, k_I=k_i)
     )
     q = _triad(a[0], m[0], "NWU" if kind == "madgwick" else "ENU")
     out = np.empty((len(g), 4))
@@ -255,7 +262,8 @@ def run_jaxatt_robust(trials, gains, repeats):
 
 
 def run_jaxatt_mahony_broad(trials):
-    """BROAD's Mahony protocol (see the module docstring); returns (per-trial metrics, wall s incl. compile)."""
+    """BROAD's Mahony protocol (see the module docstring); returns (per-trial metrics, wall s incl. compile, wall s
+    of a second, warm call per trial)."""
     import jax
     import numpy as np
 
@@ -265,14 +273,34 @@ def run_jaxatt_mahony_broad(trials):
 
     run = montecarlo.log_runner(mahony.make_observer("broad"), "next", "float64")
     p = mahony.default_params(*mahony.BROAD_TAGP, dtype="float64")
-    per, wall = {}, 0.0
+    per, wall, warm = {}, 0.0, 0.0
     for tr in trials:
         dup = jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples)
+        dt = broad.step_dt(tr.rate_hz, np.float64)
         t0 = time.perf_counter()
-        q_nwu = np.asarray(run(p, dup, broad.step_dt(tr.rate_hz, np.float64)).q_nwu, np.float64)
+        q_nwu = np.asarray(run(p, dup, dt).q_nwu, np.float64)
         wall += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(p, dup, dt).q_nwu)
+        warm += time.perf_counter() - t0
         per[tr.name] = broad.broad_errors(frames.change_frame(q_nwu[1:], "ENU", "NWU"), tr.quat_true, tr.movement)
-    return per, wall
+    return per, wall, warm
+
+
+def run_registered(trials, name):
+    """The row of the registered observer ``name`` with its default (or shipped) gains: ``jaxatt.broad_score``,
+    float64, all trials in one batched scan. Returns (per-trial metrics, wall s of a second, warm call, extra)."""
+    import jaxatt
+    from jaxatt.data import broad
+
+    sc = jaxatt.broad_score(name, None, trials)
+    warm = jaxatt.broad_score(name, None, trials).wall_s
+    per = {n: {m: getattr(v, m) for m in broad.METRICS} for n, v in sc.trials.items()}
+    extra = {
+        "first_call_s": sc.wall_s,
+        "note": "warm jaxatt.broad_score call (padding, scan, metric), float64, default gains",
+    }
+    return per, warm, extra
 
 
 def _train_trials(payload):
@@ -280,25 +308,43 @@ def _train_trials(payload):
     return payload.get("train_trials") or payload.get("settings", {}).get("train_trials") or []
 
 
-def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
-    """Out-of-fold metrics: each trial scored with the gains tuned on the other fold; returns (per-trial
-    metrics, fold info, wall s)."""
+def fold_gains_path(name, k, gains_dir):
+    """The gains file tuned on fold ``k`` for the out-of-fold row of ``name``: the robust AHRS's shipped
+    ``robust_broad_fold{k}.json``, the others' ``<gains_dir>/<name>_broad_fold{k}.json``."""
+    from jaxatt.data import gains as shipped
+
+    if name == "robust":
+        return pathlib.Path(str(shipped.path(f"robust_broad_fold{k}.json")))
+    path = pathlib.Path(gains_dir) / f"{name}_broad_fold{k}.json"
+    if not path.exists():
+        raise SystemExit(f"{path} not found: make it with research/broad_oof_tuning.py --observers {name}")
+    return path
+
+
+def run_jaxatt_oof(data_dir, trials, name="robust", *, retrain=False, steps=40, lr=0.05, folds_dir=".", gains_dir=None):
+    """Out-of-fold metrics of the registered observer ``name``: the folds are
+    ``broad.stratified_folds`` of all trials in ``data_dir``; each selected trial is scored (``jaxatt.broad_score``,
+    float64, the fold's test trials in one batched call) with the gains tuned on the OTHER fold
+    (:func:`fold_gains_path`; the file must name that fold as its training trials). ``retrain`` (robust only):
+    re-learn them first into ``folds_dir``. Returns (per-trial metrics, fold info, wall s of the first calls incl.
+    compiling, wall s of a second, warm call per fold)."""
     import jax.numpy as jnp
 
     import jaxatt
     from jaxatt.data import broad
-    from jaxatt.data import gains as shipped
     from jaxatt.fitting import gainsfile
 
     all_names = broad.resolve_trials(data_dir)
     folds = broad.stratified_folds(all_names, broad.load_trial_info(data_dir))
     if len(folds) != 2:
-        raise SystemExit("the out-of-fold row is written for 2 folds")
+        raise SystemExit("the out-of-fold rows are written for 2 folds")
     by_name = {tr.name: tr for tr in trials}
-    per, info, wall = {}, [], 0.0
+    per, info, wall, warm = {}, [], 0.0, 0.0
     for k, train in enumerate(folds, start=1):
         test = [tr for tr in trials if tr.name not in train]
         if retrain:
+            if name != "robust":
+                raise SystemExit("--retrain-folds re-learns the robust AHRS's folds only")
             out_dir = pathlib.Path(folds_dir)
             out_dir.mkdir(parents=True, exist_ok=True)
             path = out_dir / f"robust_broad_fold{k}.json"
@@ -308,18 +354,30 @@ def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
             print(f"  fold {k}: fitting on {len(train)} trials -> {path} ...", flush=True)
             jaxatt.fit("robust", None, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path), overwrite=True)
         else:
-            path = pathlib.Path(str(shipped.path(f"robust_broad_fold{k}.json")))
+            path = fold_gains_path(name, k, gains_dir)
         payload = gainsfile.read(path)
+        if payload.get("observer") not in (None, name):
+            raise SystemExit(f"{path} holds gains of {payload.get('observer')!r}, not {name!r}")
         if sorted(_train_trials(payload)) != sorted(train):
             raise SystemExit(f"{path} was tuned on {_train_trials(payload)}, not on fold {k} = {train}")
         fold = {"fold": k, "train": train, "test": [tr.name for tr in test], "gains": str(path)}
         if test:
-            res = jaxatt.broad_score("robust", gainsfile.read_params(path, "robust", dtype=jnp.float64), test)
+            p = gainsfile.read_params(path, name, dtype=jnp.float64)
+            res = jaxatt.broad_score(name, p, test)
             wall += res.wall_s
-            for name, sc in res.trials.items():
-                per[name] = {**{m: getattr(sc, m) for m in broad.METRICS}, "gains": path.name}
+            warm += jaxatt.broad_score(name, p, test).wall_s
+            for n, sc in res.trials.items():
+                per[n] = {**{m: getattr(sc, m) for m in broad.METRICS}, "gains": path.name}
         info.append(fold)
-    return {tr.name: per[tr.name] for tr in trials}, info, wall
+    return {tr.name: per[tr.name] for tr in trials}, info, wall, warm
+
+
+def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
+    """The robust AHRS's out-of-fold row (:func:`run_jaxatt_oof`): (per-trial metrics, fold info, wall s)."""
+    per, info, wall, _ = run_jaxatt_oof(
+        data_dir, trials, "robust", retrain=retrain, steps=steps, lr=lr, folds_dir=folds_dir
+    )
+    return per, info, wall
 
 
 def _offline_params(name, gains):
@@ -423,7 +481,13 @@ def run_offline(trials, name, gains):
 
 def run_offline_oof(data_dir, trials, name):
     """Out-of-fold offline row: per fold, the fusion params chosen on the training fold from FUSION_GRID with the
-    gains tuned there, the other fold scored. Returns (per-trial metrics, fold info, wall s incl. compiling)."""
+    gains tuned there, the other fold scored. Returns (per-trial metrics, fold info, wall s incl. compiling,
+    samples/s of a warm call of both passes and the fusion over all trials of ``data_dir``, mean over the folds)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxatt import smoothing
     from jaxatt.data import broad
     from jaxatt.data import gains as shipped
 
@@ -433,18 +497,23 @@ def run_offline_oof(data_dir, trials, name):
     by_name = {tr.name: tr for tr in trials}
     missing = [n for n in all_names if n not in by_name]
     pool = list(trials) + (broad.load(data_dir, missing) if missing else [])
-    per, info, cache = {}, [], {}
+    per, info, cache, rates = {}, [], {}, []
     for k, train in enumerate(folds, start=1):
         test = [tr.name for tr in trials if tr.name not in train]
         if not test:
             continue
         gains = str(shipped.path(f"robust_broad_fold{k}.json")) if name == "robust" else "defaults"
         if gains not in cache:  # VQF's defaults: one pair of passes serves both folds
-            passes, padded, _, _ = offline_passes(pool, name, _offline_params(name, gains))
+            params = _offline_params(name, gains)
+            passes, padded, _, call = offline_passes(pool, name, params)
             grid = {g: offline_metrics(passes, padded, pool, g) for g in FUSION_GRID}
-            cache[gains] = (grid, offline_metrics(passes, padded, pool, forward=True))
-        grid, fwd = cache[gains]
+            cache[gains] = (grid, offline_metrics(passes, padded, pool, forward=True), params, padded, call)
+        grid, fwd, params, padded, (fn, item) = cache[gains]
         best = min(FUSION_GRID, key=lambda g: _balanced_total(grid[g], train))
+        fusion = smoothing.FusionParams(*(jnp.asarray(v, jnp.float64) for v in best))
+        t0 = time.perf_counter()  # a warm call of both passes and the fusion over all trials, this fold's choice
+        jax.block_until_ready(_FUSE(fn(params, item, jnp.asarray(padded.lengths)), fusion))
+        rates.append(float(np.sum(padded.lengths)) / (time.perf_counter() - t0))
         for n in test:
             per[n] = {**grid[best][n], "fold": k, "forward_total_rmse_deg": fwd[n]["total_rmse_deg"]}
         info.append(
@@ -457,7 +526,8 @@ def run_offline_oof(data_dir, trials, name):
                 "train_criterion_deg": _balanced_total(grid[best], train),
             }
         )
-    return {tr.name: per[tr.name] for tr in trials}, info, time.perf_counter() - t_start
+    rate = float(np.mean(rates)) if rates else None
+    return {tr.name: per[tr.name] for tr in trials}, info, time.perf_counter() - t_start, rate
 
 
 def _groups(per):
@@ -467,6 +537,93 @@ def _groups(per):
 
     rows = {n: TrialScore(*(v[m] for m in broad.METRICS), v["group"]) for n, v in per.items()}
     return {g: s._asdict() for g, s in group_means(rows).items()}
+
+
+def _trial_order(rows):
+    """Trial names of the rows grouped as BROAD groups them (undisturbed, then disturbed; by name in each) and the
+    group of each."""
+    from jaxatt.data import broad
+
+    groups = {}
+    for r in rows.values():
+        for n, v in r["trials"].items():
+            groups.setdefault(n, v.get("group") or broad.group_of(n))
+    order = [n for g in broad.GROUPS for n in sorted(groups) if groups[n] == g]
+    return order + sorted(n for n in groups if n not in order), groups
+
+
+def draw_figure(body, title=""):
+    """The per-trial figure of a results payload: total RMSE (deg, log axis) of every trial, one series (markers
+    and line, gid = the row's name) per filter row, trials on the x axis (tick labels: the trial names' number and
+    kind) grouped undisturbed | disturbed, a NaN point at the empty slot between the groups (a row missing a trial
+    has NaN there too); each legend label ends with the row's group means (undisturbed / disturbed,
+    from the payload's ``groups``). Returns the matplotlib Figure (Agg canvas; pyplot is not used)."""
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+
+    rows = body["results"]
+    order, groups = _trial_order(rows)
+    n_u = sum(groups[n] == "undisturbed" for n in order)
+    gap = 0 < n_u < len(order)  # an empty slot between the groups: the lines break there
+    x = np.arange(len(order), dtype=float) + (np.arange(len(order)) >= n_u) * gap
+    fig = Figure(figsize=(15, 7.5), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    import matplotlib
+
+    palette = list(matplotlib.colormaps["tab20"].colors) + list(matplotlib.colormaps["tab20b"].colors)
+    markers = "osD^v<>pXh*P"
+    for i, (flt, r) in enumerate(rows.items()):
+        y = np.array([float(r["trials"].get(n, {}).get("total_rmse_deg", np.nan)) for n in order])
+        xs, ys = (np.insert(x, n_u, n_u), np.insert(y, n_u, np.nan)) if gap else (x, y)
+        g = r.get("groups", {})
+        means = " / ".join(f"{g[k]['total_rmse_deg']:.2f}" if k in g else "-" for k in ("undisturbed", "disturbed"))
+        ax.plot(
+            xs,
+            ys,
+            marker=markers[i % len(markers)],
+            linestyle="-" if flt.startswith("jaxatt") else "--",
+            linewidth=0.8,
+            markersize=4,
+            color=palette[i % len(palette)],
+            label=f"{flt}: {means}",
+            gid=flt,
+        )
+    if gap:
+        ax.axvline(n_u, color="0.3", linewidth=1.0)
+    for sel, name in ((x[:n_u], "undisturbed"), (x[n_u:], "disturbed")):
+        if len(sel):
+            ax.text(sel.mean(), 1.01, name, transform=ax.get_xaxis_transform(), ha="center", va="bottom")
+    ax.set_xticks(x, [n.split("_", 2)[0] + " " + n.split("_", 2)[-1] if n.count("_") >= 2 else n for n in order])
+    ax.tick_params(axis="x", labelrotation=70, labelsize=7)
+    ax.set_yscale("log")
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:.0e}"[0] in "235" else ""))
+    ax.set_ylabel("total RMSE (deg)")
+    ax.grid(True, which="both", axis="y", alpha=0.3)
+    ax.set_xlim(-0.5, x[-1] + 0.5)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, title="row: mean undisturbed / disturbed (deg)")
+    ax.set_title(title or "BROAD: total RMSE per trial", pad=18)
+    return fig
+
+
+def figure_from(results_path, png=None):
+    """Draw :func:`draw_figure` of a results file (JSON) to ``png`` (default: the JSON's path with .png); returns
+    the PNG's path."""
+    import json
+
+    results_path = pathlib.Path(results_path)
+    res = json.loads(results_path.read_text())
+    body = res.get("payload", res)
+    if not isinstance(body.get("results"), dict) or not body["results"]:
+        raise SystemExit(f"{results_path}: no 'results' rows (not a benchmarks/broad.py results file)")
+    n = len(_trial_order(body["results"])[0])
+    fig = draw_figure(body, f"BROAD, {n} trials: total RMSE per trial ({results_path.name})")
+    out = pathlib.Path(png) if png else results_path.with_suffix(".png")
+    fig.savefig(out, dpi=110)
+    return out
 
 
 def main(argv=None) -> int:
@@ -490,16 +647,32 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40, help="--retrain-folds: Adam steps")
     ap.add_argument("--lr", type=float, default=0.05, help="--retrain-folds: learning rate")
     ap.add_argument("--folds-dir", default=".", help="--retrain-folds: where robust_broad_fold{k}.json are written")
+    ap.add_argument(
+        "--oof-gains-dir",
+        default=str(OOF_GAINS_DIR),
+        help="the fold gains <name>_broad_fold{1,2}.json of the jaxatt-<name>-oof rows (vqf, madgwick, mahony)",
+    )
     ap.add_argument("--out", default=str(C.RESULTS_DIR))
+    ap.add_argument(
+        "--figure-from",
+        default=None,
+        metavar="JSON",
+        help="only draw the per-trial figure of an existing results file (no filter runs)",
+    )
+    ap.add_argument("--figure-out", default=None, help="--figure-from: the PNG (default: beside the JSON)")
     args = ap.parse_args(argv)
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jaxatt
     from jaxatt.data import broad
 
+    if args.figure_from:
+        png = figure_from(args.figure_from, args.figure_out)
+        print(f"figure written to {png}")
+        return 0
     known = filter_names()
+    tuned_oof = tuple(f"jaxatt-{n}-oof" for n in TUNED_OOF)
     args.filters = list(args.filters or known)
     bad = [f for f in args.filters if f not in known]
     if bad:
@@ -511,45 +684,49 @@ def main(argv=None) -> int:
     results = {}
     for flt in args.filters:
         print(f"{flt} ...", flush=True)
-        per, wall, extra = {}, 0.0, {}
+        per, wall, extra, rate = {}, 0.0, {}, None
         if flt == "jaxatt-robust":
             per, extra = run_jaxatt_robust(trials, args.gains, args.repeats)
             wall = n_samples / extra["float32"]["samples_per_s"]
-        elif flt == "jaxatt-robust-oof":
-            per, folds, wall = run_jaxatt_robust_oof(
+        elif flt == "jaxatt-robust-oof" or flt in tuned_oof:
+            per, folds, wall, warm = run_jaxatt_oof(
                 args.data_dir,
                 trials,
-                retrain=args.retrain_folds,
+                flt[len("jaxatt-") : -len("-oof")],
+                retrain=args.retrain_folds and flt == "jaxatt-robust-oof",
                 steps=args.steps,
                 lr=args.lr,
                 folds_dir=args.folds_dir,
+                gains_dir=args.oof_gains_dir,
             )
-            extra = {"folds": folds, "note": "wall includes compile; each trial scored with the other fold's gains"}
+            rate = n_samples / warm
+            extra = {
+                "folds": folds,
+                "warm_wall_s": warm,
+                "note": "wall includes compile; each trial scored with the other fold's gains; samples/s from a "
+                "second, warm jaxatt.broad_score call per fold (float64)",
+            }
         elif flt in ("jaxatt-robust-offline", "jaxatt-vqf-offline"):
             per, extra, wall = run_offline(trials, flt.split("-")[1], args.gains)
         elif flt in ("jaxatt-robust-offline-oof", "jaxatt-vqf-offline-oof"):
-            per, folds, wall = run_offline_oof(args.data_dir, trials, flt.split("-")[1])
+            per, folds, wall, rate = run_offline_oof(args.data_dir, trials, flt.split("-")[1])
             extra = {
                 "folds": folds,
                 "fusion_grid": FUSION_GRID,
                 "note": "wall includes compile; fusion chosen on the training fold, each trial scored with the other "
-                "fold's gains and fusion",
+                "fold's gains and fusion; samples/s from a warm call of both passes and the fusion (float64) over "
+                "all trials of --data-dir with each fold's gains and fusion (mean of the folds)",
             }
         elif flt == "jaxatt-mahony-broad":
-            per, wall = run_jaxatt_mahony_broad(trials)
-            extra = {"note": "BROAD's protocol (start, sample 0 twice), float64; wall includes compile"}
+            per, wall, warm = run_jaxatt_mahony_broad(trials)
+            rate = n_samples / warm
+            extra = {
+                "warm_wall_s": warm,
+                "note": "BROAD's protocol (start, sample 0 twice), float64; wall includes compile; samples/s from a "
+                "second, warm call per trial",
+            }
         elif flt.startswith("jaxatt-"):  # a registered observer through the front door
-            name = flt[len("jaxatt-") :]
-            sc = jaxatt.broad_score(name, None, trials)
-            warm = jaxatt.broad_score(name, None, trials).wall_s
-            per = {n: {m: getattr(v, m) for m in broad.METRICS} for n, v in sc.trials.items()}
-            wall, extra = (
-                warm,
-                {
-                    "first_call_s": sc.wall_s,
-                    "note": "warm jaxatt.broad_score call (padding, scan, metric), float64, default gains",
-                },
-            )
+            per, wall, extra = run_registered(trials, flt[len("jaxatt-") :])
         else:
             for tr in trials:
                 if flt.startswith("vqf"):
@@ -562,16 +739,11 @@ def main(argv=None) -> int:
                 wall += w
         per = {tr.name: {**per[tr.name], "group": tr.group or broad.group_of(tr.name)} for tr in trials}
         groups = _groups(per)
-        timed = wall > 0 and not flt.endswith("-oof")  # the out-of-fold rows' wall is scoring + compiling
-        results[flt] = {
-            "trials": per,
-            "groups": groups,
-            "wall_s": wall,
-            "samples_per_s": n_samples / wall if timed else None,
-            **extra,
-        }
-        rate = f"  ({n_samples / wall:.3g} samples/s)" if timed else ""
-        print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items()) + rate, flush=True)
+        if rate is None and wall > 0 and not flt.endswith("-oof"):
+            rate = n_samples / wall  # a row timed by its wall (the out-of-fold rows give a warm rate or none)
+        results[flt] = {"trials": per, "groups": groups, "wall_s": wall, "samples_per_s": rate, **extra}
+        shown = f"  ({rate:.3g} samples/s)" if rate else ""
+        print("  " + ", ".join(f"{g} {v['total_rmse_deg']:.2f}" for g, v in groups.items()) + shown, flush=True)
 
     print(f"\nBROAD, {len(names)} trials, {n_samples} samples: mean total RMSE (deg)")
     print(f"{'filter':26s} {'undisturbed':>12s} {'disturbed':>10s} {'anchor':>14s} {'samples/s':>11s}")
@@ -607,6 +779,7 @@ def main(argv=None) -> int:
         meta=meta,
     )
     print(f"results written to {path}")
+    print(f"figure written to {figure_from(path)}")
     return 0
 
 
