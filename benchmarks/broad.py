@@ -4,7 +4,10 @@ cross-validation), its fair number to compare.
 
 Install: ``pip install -e ".[compare,data]"`` (vqf, ahrs, imufusion, h5py). Run:
 ``python benchmarks/broad.py [--data-dir ../shared/data/broad] [--filters ...] [--trials ...] [--gains all]
-[--retrain-folds --steps 40 --folds-dir DIR]``. Writes benchmarks/results/broad-<host>-<UTC>.json.
+[--retrain-folds --steps 40 --folds-dir DIR] [--oof-gains-dir DIR]``. Writes benchmarks/results/broad-<host>-<UTC>.json
+and beside it the per-trial figure (.png: total RMSE of every trial, one series per row, trials grouped
+undisturbed | disturbed, group means in the legend). ``python benchmarks/broad.py --figure-from RESULTS.json
+[--figure-out PNG]`` only draws the figure of an existing results file.
 
 Filters and conventions:
 
@@ -23,16 +26,25 @@ Filters and conventions:
   per fold on 2 CPU cores; ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false`` roughly halves a gradient on CPU).
   Its wall time includes compiling.
 * **every other registered observer** (``jaxatt-<name>`` for each name of
-  ``jaxatt.observers.registry.names(recorded=True)``: complementary, madgwick, mahony, mekf, nlo, nlio-fg, nlio):
-  ``jaxatt.broad_score(name, None, trials)`` with its default (or shipped) gains, float64, all trials in one
-  batched scan; samples/s from a second, warm call (it includes padding the trials and the metric reduced in the
-  scan). The registered madgwick and mahony start from TRIAD as the ahrs rows do, so they should match them.
+  ``jaxatt.observers.registry.names(recorded=True)``: complementary, madgwick, mahony, mekf, nlo, nlio-fg, nlio,
+  vqf, vqf-6d): ``jaxatt.broad_score(name, None, trials)`` with its default (or shipped) gains, float64, all trials
+  in one batched scan; samples/s from a second, warm call (it includes padding the trials and the metric reduced
+  in the scan). The registered madgwick and mahony start from TRIAD as the ahrs rows do; madgwick equals ahrs's
+  Madgwick with the same beta (``tests/test_broad_benchmark.py``; the ahrs row's beta is 0.12, jaxatt's default
+  0.041), mahony is BROAD's implementation (not ahrs's) with BROAD's best gains.
+* **out-of-fold tuned VQF, Madgwick, Mahony** (``jaxatt-vqf-oof``, ``jaxatt-madgwick-oof``, ``jaxatt-mahony-oof``;
+  :data:`TUNED_OOF`): as the robust AHRS's out-of-fold row, with the fold gains ``<name>_broad_fold{1,2}.json``
+  that ``research/broad_oof_tuning.py`` learnt (``jaxatt.fit`` from the default gains, 40 Adam steps, float32) in
+  ``--oof-gains-dir`` (default research/results/broad_folds; not shipped with the package). Each file must name
+  fold k of ``broad.stratified_folds`` as its training trials; each trial is scored with the other fold's file.
+  The out-of-fold rows' samples/s come from a second, warm ``jaxatt.broad_score`` call per fold (their ``wall_s``
+  includes compiling).
 * **jaxatt Mahony, BROAD's protocol** (``jaxatt-mahony-broad``: BROAD's implementation, start and gains;
   reproduces the published numbers): a sanity row replaying BROAD's protocol as ``tests/test_broad.py`` does:
   ``mahony.make_observer("broad")`` (BROAD's ``quatFromAccMag`` start; the registered "mahony" starts from TRIAD
   instead) over each trial with sample 0 processed twice (``setState`` from sample 0, then samples 0 ... N-1),
   ``montecarlo.log_runner``, float64, its sensor-to-NWU output rotated into ENU; wall includes compiling (one
-  per trial length).
+  per trial length), samples/s from a second, warm call per trial.
 * **offline mode** (``jaxatt-robust-offline``, ``jaxatt-vqf-offline``; :mod:`jaxatt.smoothing`): the registered
   observer run forward and over the time-reversed trials (gyro negated), the two estimates fused per sample with
   the default fusion params (``jaxatt.smoothing.default_fusion``, whose heading numbers are what each training fold
@@ -44,7 +56,8 @@ Filters and conventions:
   out-of-fold row; on each training fold the fusion params are chosen from :data:`FUSION_GRID` (the lowest mean of
   the two group means of the total RMSE there), with the gains tuned on that fold (robust: the shipped
   ``robust_broad_fold{k}.json``; VQF: its defaults, tuned on nothing), and the trials of the other fold are
-  scored with both. Wall includes compiling.
+  scored with both. Wall includes compiling; samples/s from a warm call of both passes and the fusion over all
+  trials of ``--data-dir`` with each fold's gains and fusion (mean of the two folds).
 * **VQF online 9D**: ``vqf.VQF(Ts).updateBatch(gyr, acc, mag)["quat9D"]``; **offline VQF 9D**:
   ``vqf.offlineVQF(gyr, acc, mag, Ts, None)["quat9D"]``. VQF's quaternions are sensor-to-ENU like BROAD's.
 * **ahrs Madgwick** (beta = 0.12) and **ahrs Mahony** (BROAD's best gains k_P = 0.74, k_I = 0.0012): started
