@@ -635,7 +635,7 @@ def figure_from(results_path, png=None):
     n = len(_trial_order(body["results"])[0])
     fig = draw_figure(body, f"BROAD, {n} trials: total RMSE per trial ({results_path.name})")
     out = pathlib.Path(png) if png else results_path.with_suffix(".png")
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, pil_kwargs={"optimize": True})
     return out
 
 
