@@ -16,7 +16,7 @@ from jaxatt.fitting import varfree as V
 
 @pytest.fixture(autouse=True)
 def _x64():
-    prev = jax.config.jax_enable_x64
+    prev = jax.config.values["jax_enable_x64"]
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", prev)
@@ -114,9 +114,7 @@ def test_riccati_matches_gaussian_conditioning(hold):
     n = 12
     prior = F.Prior(0.1, 0.01)
     got = F.floor(scn, duration=n * 0.05, dt=0.05, hold=hold, prior=prior, every=1)["records"]["mean_sq_deg2"]
-    ref = _reference(
-        scn.rates.rate, scn.r0, np.zeros(3), refs_nav, 0.05, 0.02, 0.05, n, hold, prior.attitude_rad, 0.01
-    )
+    ref = _reference(scn.rates.rate, scn.r0, np.zeros(3), refs_nav, 0.05, 0.02, 0.05, n, hold, prior.attitude_rad, 0.01)
     np.testing.assert_allclose(got, ref * (180 / np.pi) ** 2, rtol=2e-6)
     if hold == "zoh":  # Earth rate coupling (x1e3 so that it shows over 12 steps), no bias, one vector
         g = studies.get("batista-ges").setup(duration=1.0, dt=0.05)

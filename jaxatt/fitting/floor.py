@@ -135,6 +135,12 @@ def _local(scn, r, t, dt, n: int, bias: bool, rows):
     return r, cg[0], cg[1], hy[0], hy[1]
 
 
+def _gyro_jac(scn, r, t, dt, n: int, bias: bool):
+    """C = dc/dx (3, n) of the gyro's attitude/bias-dependent part at the truth r (time t)."""
+    zx, zn = jnp.zeros((n,), r.dtype), jnp.zeros((int(scn.n_channels),), r.dtype)
+    return jax.jacfwd(lambda x: _perturbed(scn, r, t, dt, x, zn, bias).gyr)(zx)
+
+
 def _model(scn, dt, bias: Optional[bool]) -> Model:
     """Structure of the problem from the first sample (concrete): noisy rows, bias, checks."""
     dtype = jnp.result_type(float)
@@ -197,7 +203,7 @@ def floor(
     windows=(("all", 0.0, math.inf),),
     hold: str = "zoh",
     bias: Optional[bool] = None,
-    prior: Prior = Prior(),
+    prior: Optional[Prior] = None,
     smoother: bool = False,
     every: int = 0,
 ) -> dict:
@@ -210,11 +216,12 @@ def floor(
     windows (``smoothed``). ``every``: also ``records`` of every ``every``-th estimate: ``t`` (s), ``p_att``
     (3, 3) the attitude-error covariance (rad^2, navigation frame), ``mean_sq_deg2``, ``mean_deg``.
 
-    Returns ``windows.<name>.{start_s, end_s, count, mean_sq_deg2, rms_deg, mean_deg}`` (floor of the window mean
-    of E[theta^2], its square root, floor... of E[theta]: the Kalman filter's; E[theta] of the optimal
-    estimator, not a bound on every estimator's), ``unknowns``, ``measurements`` (names of the measurement
-    components), ``prior`` and ``hold``. ValueError (one line) on bad input."""
-    if not jax.config.jax_enable_x64:
+    Returns ``windows.<name>.{start_s, end_s, count, mean_sq_deg2, rms_deg, mean_deg}``: the Kalman filter's
+    window mean of E[theta^2] (deg^2; a lower bound for every estimator with the same samples), its square root
+    (deg) and its window mean of E[theta] (deg; that of the optimal estimator, comparable with varfree's
+    ``mean_deg`` but not a bound on every estimator's), plus ``unknowns``, ``measurements`` (names of the
+    measurement components), ``prior``, ``hold``, ``dt``, ``n_steps``. ValueError (one line) on bad input."""
+    if not jax.config.values["jax_enable_x64"]:
         raise ValueError("the floor needs float64: call jax.config.update('jax_enable_x64', True) first")
     dt = float(dt)
     if not (math.isfinite(dt) and dt > 0):
@@ -227,6 +234,7 @@ def floor(
     last = max(w[2] for w in wins)
     if math.isfinite(last):
         n_steps = max(1, min(n_steps, math.ceil(last / dt - 1e-9)))
+    prior = Prior() if prior is None else prior
     pa, pb = float(prior.attitude_rad), float(prior.bias_rad_s)
     if not (math.isfinite(pa) and math.isfinite(pb) and pa >= 0 and pb >= 0):
         raise ValueError(f"prior standard deviations must be finite and >= 0, got {prior}")
@@ -339,7 +347,7 @@ def _compiled(mdl: Model, dt: float, n_steps: int, hold: str, nw: int, every: in
             rm = scn.propagate(r0, t0, h2)
             r1 = scn.propagate(r0, t0, dt)
             rb0, c0 = loc0[0], loc0[1]
-            rbm, cm, _, _, _ = local(rm, t0 + h2)
+            rbm, cm = rm, _gyro_jac(scn, rm, t0 + h2, dt, n, bias)
             loc1 = local(r1, t0 + dt)
             rb1, c1 = loc1[0], loc1[1]
             a = -rbm @ cm[:, :3]
@@ -440,7 +448,7 @@ def floor_study(study, *, windows=None, prior: Optional[Prior] = None, bias=None
         windows=windows,
         hold=s.hold,
         bias=bias,
-        prior=Prior() if prior is None else prior,
+        prior=prior,
         smoother=smoother,
         every=every,
     )
