@@ -465,9 +465,11 @@ def heading_floor_closed_form(scenario, t) -> np.ndarray:
     the Kalman-Bucy solution for the random walk psi' = w_m (the gyro noise about m_hat) observed through
     z' = c psi + w_u (the measured tilt z of m_hat towards u = m_hat x {}^I omega_E / c, driven by the gyro noise
     about u, which is independent of w_m). For c t << 1 it is q / (c^2 t) (1 + (c t)^2 / 3 + ...), i.e. the
-    standard deviation sigma_g sqrt(dt) / (c sqrt(t)). Valid for t much longer than the tilt's settling time
-    sqrt(r / q) (r = (sigma_m / |m|)^2 dt, the vector sensor's noise density; about 17 s for Section IV of
-    Batista et al. 2019) and than the time to forget a finite prior. ``scenario``: an
+    standard deviation sigma_g sqrt(dt) / (c sqrt(t)) (sigma_g: the gyro's per-sample standard deviation).
+    Valid for t much longer than the time to forget a finite prior and than the tilt's settling time
+    tau = sqrt(r / q) (r = (sigma_m / |m|)^2 dt, the vector sensor's noise density; 17 s in Section IV of
+    Batista et al. 2019); a noisy vector sensor raises the heading variance above this limit by about
+    2 tau / t (the ends of the tilt record are known only to within its noise; tests/test_floor.py). ``scenario``: an
     :class:`jaxatt.sim.imu.ImuScenario`; ``t`` (s)."""
     w = np.asarray(scenario.earth_rate_nav, float)
     m = np.asarray(scenario.ref_nav, float)
