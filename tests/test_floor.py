@@ -48,11 +48,11 @@ def _truth_numpy(rate, r0, dt, n, sub=40):
     return np.asarray(rs)
 
 
-def _reference(rate, r0, earth_nav, refs_nav, sig_v, sig_g, dt, n, hold, prior_att, prior_bias):
+def _reference(rate, r0, earth_nav, refs_nav, sig_v, sig_g, dt, n, hold, prior_att, prior_bias, smooth=False):
     """tr Cov(eps_k | the samples estimate k uses), k = 0 ... n, by Gaussian conditioning on every random number
     at once (no recursion): eps_k and the measurements are linear maps of z = [eps_0, beta, g_0 .. g_n, v_0 .. v_n],
     built from the continuous-time perturbation eps' = -S(w_E) eps - R(s) (beta + g(s)) with a fine trapezoid
-    rule."""
+    rule. ``smooth``: conditioned on every sample (the RTS smoother's covariance)."""
     sub = 40
     rs = _truth_numpy(rate, r0, dt, n, sub)
     bias = prior_bias is not None
@@ -94,7 +94,7 @@ def _reference(rate, r0, earth_nav, refs_nav, sig_v, sig_g, dt, n, hold, prior_a
     cov = np.diag(var)
     out = []
     for k in range(n + 1):
-        seen = range(0, max(k, 1)) if hold == "zoh" else range(0, k + 1)
+        seen = range(0, n + 1) if smooth else range(0, max(k, 1)) if hold == "zoh" else range(0, k + 1)
         ymap = np.vstack([ys[j] for j in seen])
         s_ee = eps[k] @ cov @ eps[k].T
         s_ey = eps[k] @ cov @ ymap.T
@@ -116,6 +116,11 @@ def test_riccati_matches_gaussian_conditioning(hold):
     got = F.floor(scn, duration=n * 0.05, dt=0.05, hold=hold, prior=prior, every=1)["records"]["mean_sq_deg2"]
     ref = _reference(scn.rates.rate, scn.r0, np.zeros(3), refs_nav, 0.05, 0.02, 0.05, n, hold, prior.attitude_rad, 0.01)
     np.testing.assert_allclose(got, ref * (180 / np.pi) ** 2, rtol=2e-6)
+    sm = F.floor(scn, duration=n * 0.05, dt=0.05, hold=hold, prior=prior, smoother=True)["smoothed"]["all"]
+    ref_s = _reference(
+        scn.rates.rate, scn.r0, np.zeros(3), refs_nav, 0.05, 0.02, 0.05, n, hold, prior.attitude_rad, 0.01, True
+    )
+    np.testing.assert_allclose(sm["mean_sq_deg2"], np.mean(ref_s) * (180 / np.pi) ** 2, rtol=2e-6)
     if hold == "zoh":  # Earth rate coupling (x1e3 so that it shows over 12 steps), no bias, one vector
         g = studies.get("batista-ges").setup(duration=1.0, dt=0.05)
         sc = g.scenario._replace(earth_rate_nav=g.scenario.earth_rate_nav * 1e3)
