@@ -18,6 +18,8 @@ b = b^ + db.
   random walk (rad/s/sqrt(s)).
 * Update, one sensor at a time (acc, then mag): h = R^T v^N, H = [S(h), 0], S = H P H^T + R_i,
   K = P H^T S^-1, x = K (y - h), Joseph-form covariance; reset q^ <- q^ (x) exp_q(dtheta), b^ <- b^ + db.
+  Each update also gives the innovation's negative log-likelihood 0.5 (log det S + nu^T S^-1 nu + 3 log 2 pi),
+  nu = y - h; ``Out.nll`` is the step's sum (the loss kind "innovation_nll" of :mod:`jaxatt.fitting.losses`).
 
 Step order: with a held sample (``hold="zoh"``) the sample at t_k updates the state at t_k, then the gyro
 propagates it to t_k+1 (Out is the prior at t_k+1); with an :class:`Interval` the mean gyro propagates first and

@@ -168,9 +168,7 @@ class Study(abc.ABC):
         entry, label = self.entry, self.tuned
         if observer is not None and observer != self.entry:
             if observer not in self.fittable:
-                raise ValueError(
-                    f"study {self.name} tunes {', '.join([self.entry, *self.fittable])}, not {observer!r}"
-                )
+                raise ValueError(f"study {self.name} tunes {', '.join([self.entry, *self.fittable])}, not {observer!r}")
             entry, label = observer, self.fittable[observer]
         obs, params = self.compared(cfg, label)
         return Setup(
