@@ -63,8 +63,8 @@ def test_mekf_noise_levels_recovered_by_likelihood():
 
     kw = dict(loss="innovation_nll", config=CFG, train_runs=4, batch=4, val_runs=0, lr=0.1, dtype=np.float64)
     # two stages of the same fitter: R first (the gyro noise barely moves the likelihood until R is right), then all
-    r1 = jaxatt.fit("mekf", None, "nlio-case1", start=wrong, tune=["r_acc", "r_mag"], steps=40, **kw)
-    r2 = jaxatt.fit("mekf", r1.params, "nlio-case1", tune=["gyro_noise_std", "r_acc", "r_mag"], steps=60, **kw)
+    r1 = jaxatt.fit("mekf", None, "nlio-case1", start=wrong, tune=["r_acc", "r_mag"], steps=30, **kw)
+    r2 = jaxatt.fit("mekf", r1.params, "nlio-case1", tune=["gyro_noise_std", "r_acc", "r_mag"], steps=45, **kw)
     p = r2.params
     np.testing.assert_allclose(np.diag(np.asarray(p.r_acc)) / va, 1.0, atol=0.15)
     np.testing.assert_allclose(np.diag(np.asarray(p.r_mag)) / vm, 1.0, atol=0.15)
