@@ -6,7 +6,9 @@ observer with its default gains. Gains files go to ``--folds-dir`` as ``<name>_b
 fold tuned on); an existing file is reused unless ``--retrain``.
 
 Usage:
-  python research/broad_oof_tuning.py --observers vqf madgwick mahony [--steps 40] [--folds-dir DIR]
+  python research/broad_oof_tuning.py --observers vqf madgwick mahony [--steps 40] [--folds-dir DIR] [--diagonal]
+
+``--diagonal`` learns the SPD gains (e.g. the MEKF's noise covariances) as diagonal matrices.
 
 Writes research/results/broad-oof-tuning-<host>-<UTC>.json (per trial and per group, default and tuned) and
 prints the group means.
@@ -34,6 +36,11 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=0.05)
     ap.add_argument("--folds-dir", default=str(HERE / "results" / "broad_folds"))
     ap.add_argument("--retrain", action="store_true", help="fit again even when the fold's gains file exists")
+    ap.add_argument(
+        "--diagonal",
+        action="store_true",
+        help="learn SPD gains (e.g. noise covariances) as diagonal matrices; gains files <name>_diag_broad_fold<k>",
+    )
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
 
@@ -54,11 +61,19 @@ def main(argv=None) -> int:
     folds_dir = pathlib.Path(args.folds_dir)
     folds_dir.mkdir(parents=True, exist_ok=True)
     results = {}
+    from jaxatt.fitting import parametrize
+    from jaxatt.observers import registry
+
     for name in args.observers:
+        entry = registry.get(name)
+        diag = {
+            g.field: parametrize.SPD(structure="diagonal") for g in entry.gains if g.constraint == "spd" and g.tuned
+        }
+        tag = f"{name}_diag" if args.diagonal else name
         default = jaxatt.broad_score(name, None, list(trials.values()))
         tuned, fits = {}, []
         for k, train in enumerate(folds, start=1):
-            path = folds_dir / f"{name}_broad_fold{k}.json"
+            path = folds_dir / f"{tag}_broad_fold{k}.json"
             t0 = time.perf_counter()
             if args.retrain or not path.exists():
                 print(f"{name}: fitting on fold {k} ({len(train)} trials) -> {path}", flush=True)
@@ -69,6 +84,7 @@ def main(argv=None) -> int:
                     steps=args.steps,
                     lr=args.lr,
                     dtype="float32",
+                    transforms=diag if args.diagonal else None,
                     out=str(path),
                     overwrite=True,
                 )

@@ -473,7 +473,9 @@ def fit(
     """Learn gains by gradient descent through the whole scan.
 
     Args:
-        observer: a registered name or your own Observer (for a study: None = the study's tuned observer).
+        observer: a registered name or your own Observer (for a study: None = the study's tuned observer, or the
+            registered name of another observer the study compares, its ``fittable``, e.g. "mekf" or "nlio" on
+            the nlio studies).
         params: start gains (None: a registered observer's shipped/default gains, or the study's paper gains).
         data: recorded trials (:class:`jaxatt.data.broad.Trial` s; loss = group-weighted mean per-trial total RMSE,
             deg) or a study name (:data:`jaxatt.studies.TUNABLE`; loss = ``loss`` over its windows on simulated
@@ -491,7 +493,8 @@ def fit(
             resume state). ``resume``: continue from it. ``overwrite``: replace a finished one.
         dtype: arithmetic (default: float64 when x64 is on for studies; for trials the data's).
         loss, transient_weight, config, refine_schedule, checkpoint, step_remat, devices: study options
-            (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`).
+            (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`); ``loss="innovation_nll"`` fits a
+            Kalman filter's noise parameters by maximum likelihood of its innovations (no truth used).
         objective: for a study, ``"montecarlo"`` (the loss averaged over minibatches of simulated runs) or
             ``"varfree"`` (its expectation over the noise, computed without runs by covariance propagation along
             the noise-free run, :mod:`jaxatt.fitting.varfree`: no sampling noise in the loss or its gradient, so
@@ -780,10 +783,10 @@ def _fit_study(
         raise ValueError(f"study {st.name!r} cannot be tuned; tunable: {', '.join(studies.TUNABLE)}")
     if train_runs < 1 or val_runs < 0:
         raise ValueError(f"need train_runs >= 1 and val_runs >= 0, got {train_runs}, {val_runs}")
-    s = st.setup(**dict(config or {}))
+    s = st.setup(observer if isinstance(observer, str) else None, **dict(config or {}))
+    if observer is not None and not isinstance(observer, str) and observer is not s.observer:
+        raise ValueError(f"study {st.name}: pass the observer by its registered name ({s.entry!r}) or None")
     entry = registry.get(s.entry)
-    if observer is not None and observer not in (entry.name, s.observer):
-        raise ValueError(f"study {st.name} tunes {entry.name!r}; leave observer=None")
     p0 = _start(s.params if params is None else params, start, entry)
     if len(refine_schedule):
         fields = [g.field for g in entry.gains if g.constraint == "schedule"]

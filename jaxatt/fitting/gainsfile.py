@@ -181,7 +181,7 @@ def read_params(path, entry=None, base=None, *, dtype=None):
         if base is None and d.get("study"):
             from .. import studies
 
-            base = studies.get(d["study"]).setup().params
+            base = studies.get(d["study"]).setup(entry.name).params
         if base is None:
             base = entry.default_params(dtype=dtype)
     if base is None:

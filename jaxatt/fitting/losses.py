@@ -3,7 +3,9 @@
 
 * :class:`LossSpec` / :func:`loss_spec`: a pointwise error ``e(t)`` (``"angle_sq"``: squared rotation angle of
   R^T R^ in deg^2; ``"angle"``: the angle in deg; ``"chordal"``: tr(I - R^T R^) = 2 (1 - cos angle);
-  ``"euler_sq"``: sum of squared wrapped ZYX roll/pitch/yaw errors in deg^2, for AHRS observers; or any hashable
+  ``"euler_sq"``: sum of squared wrapped ZYX roll/pitch/yaw errors in deg^2, for AHRS observers;
+  ``"innovation_nll"``: the filter's negative log-likelihood of its innovations (nats per step, ``Out.nll`` of
+  Kalman filters such as the MEKF; the maximum-likelihood loss of noise parameters); or any hashable
   ``fn(truth, out) -> scalar``) averaged over time windows, weighted (e.g. transient and steady state), then
   averaged over runs.
 * :func:`make_loss_fn`: ``loss(scenario, params, keys) -> (loss, aux)``, the same fused simulator + observer scan
@@ -66,14 +68,27 @@ def _euler_sq(truth, out):
     return sum(jnp.rad2deg(e) ** 2 for e in so3.euler_error_zyx(truth.r.astype(r.dtype), r))
 
 
+def _innovation_nll(truth, out):
+    nll = getattr(out, "nll", None)
+    if nll is None:
+        raise ValueError(
+            f"loss 'innovation_nll' needs an observer whose Out has an 'nll' field (e.g. mekf); {type(out).__name__} "
+            "has none"
+        )
+    return nll
+
+
 #: Pointwise errors e(truth, out) -> scalar, by name (unit in the comment).
 POINTWISE: Dict[str, Callable] = {
     "angle_sq": _angle_sq,  # deg^2, squared rotation angle of R^T R^ (eq. 23 of batista2019-ges)
     "angle": _angle,  # deg (gradient-safe at 0 and pi: jaxatt.so3.angle_of)
     "chordal": _chordal,  # tr(I - R^T R^) = 2 (1 - cos angle), dimensionless
     "euler_sq": _euler_sq,  # deg^2, roll^2 + pitch^2 + yaw^2 of wrapped ZYX differences (AHRS)
+    # nats per step: the filter's negative log-likelihood of its own innovations (Out.nll, e.g. the MEKF's); needs
+    # no truth, and its minimiser over the noise parameters is their maximum-likelihood estimate
+    "innovation_nll": _innovation_nll,
 }
-POINTWISE_UNITS = {"angle_sq": "deg^2", "angle": "deg", "chordal": "-", "euler_sq": "deg^2"}
+POINTWISE_UNITS = {"angle_sq": "deg^2", "angle": "deg", "chordal": "-", "euler_sq": "deg^2", "innovation_nll": "nats"}
 
 
 class LossSpec(NamedTuple):

@@ -18,6 +18,8 @@ b = b^ + db.
   random walk (rad/s/sqrt(s)).
 * Update, one sensor at a time (acc, then mag): h = R^T v^N, H = [S(h), 0], S = H P H^T + R_i,
   K = P H^T S^-1, x = K (y - h), Joseph-form covariance; reset q^ <- q^ (x) exp_q(dtheta), b^ <- b^ + db.
+  Each update also gives the innovation's negative log-likelihood 0.5 (log det S + nu^T S^-1 nu + 3 log 2 pi),
+  nu = y - h; ``Out.nll`` is the step's sum (the loss kind "innovation_nll" of :mod:`jaxatt.fitting.losses`).
 
 Step order: with a held sample (``hold="zoh"``) the sample at t_k updates the state at t_k, then the gyro
 propagates it to t_k+1 (Out is the prior at t_k+1); with an :class:`Interval` the mean gyro propagates first and
@@ -52,6 +54,7 @@ __all__ = [
     "quat_exp",
     "propagate",
     "update",
+    "innovation_nll",
 ]
 
 
@@ -80,23 +83,28 @@ class Params(NamedTuple):
 
 
 class State(NamedTuple):
-    """t (s), q^ (4,) (w, x, y, z), b^ (3,) rad/s, P (6, 6), last valid gyro sample (3,)."""
+    """t (s), q^ (4,) (w, x, y, z), b^ (3,) rad/s, P (6, 6), last valid gyro sample (3,), and the negative
+    log-likelihood of the last step's innovations (nats, see :func:`innovation_nll`)."""
 
     t: jax.Array
     q: jax.Array
     b_hat: jax.Array
     p: jax.Array
     gyr_last: jax.Array
+    nll: jax.Array
 
 
 class Out(NamedTuple):
-    """t (s), R (3, 3) body to navigation, q (4,), b^ (rad/s), sigma = sqrt(diag P) (6,) (rad, rad/s)."""
+    """t (s), R (3, 3) body to navigation, q (4,), b^ (rad/s), sigma = sqrt(diag P) (6,) (rad, rad/s), and
+    ``nll``: the negative log-likelihood (nats) of the innovations of the step that produced it (sum over its
+    acc and mag updates, :func:`innovation_nll`; 0 before the first step and for missing samples)."""
 
     t: jax.Array
     r: jax.Array
     q: jax.Array
     bias: jax.Array
     sigma: jax.Array
+    nll: jax.Array
 
 
 def default_params(
@@ -197,21 +205,39 @@ def propagate(p: Params, q, b_hat, cov, gyr, dt):
     return q, 0.5 * (cov + cov.T)
 
 
+def innovation_nll(nu, s_inv, det_s):
+    """Negative log-likelihood (nats) of an innovation ``nu`` (3,) ~ N(0, S) with S = H P H^T + R_i (the
+    filter's own prediction): 0.5 (log det S + nu^T S^-1 nu + 3 log 2 pi). Summed over a run it is the
+    prediction-error (innovations) form of the Gaussian likelihood of the samples (Schweppe 1965; Mehra 1970),
+    whose minimiser is the maximum-likelihood estimate of the filter's noise parameters (Q, R).
+    ``s_inv``, ``det_s``: S^-1 and det S."""
+    quad = jnp.sum(nu * so3.mv(s_inv, nu), axis=-1)
+    return 0.5 * (jnp.log(det_s) + quad + 3.0 * jnp.log(2.0 * jnp.pi))
+
+
 def update(q, b_hat, cov, y, ref_nav, r_meas, ok):
     """One vector-measurement update (skipped where ``ok`` is False). Returns (q^, b^, P)."""
+    return _update(q, b_hat, cov, y, ref_nav, r_meas, ok)[:3]
+
+
+def _update(q, b_hat, cov, y, ref_nav, r_meas, ok):
+    """:func:`update` and the innovation's negative log-likelihood (0 where ``ok`` is False)."""
     rot = so3.quat_to_matrix(q)
     h = so3.mv(rot.T, ref_nav)
     hm = jnp.concatenate([so3.skew(h), jnp.zeros((3, 3), cov.dtype)], axis=1)  # (3, 6)
     pht = so3.mm(cov, hm.T)  # (6, 3)
     s = so3.mm(hm, pht) + r_meas
-    s_inv = jnp.swapaxes(so3.cofactor(s), -1, -2) / so3.det3(s)
+    det_s = so3.det3(s)
+    s_inv = jnp.swapaxes(so3.cofactor(s), -1, -2) / det_s
     k = so3.mm(pht, s_inv)  # (6, 3)
-    dx = so3.mv(k, jnp.where(ok, y, h) - h)
+    nu = jnp.where(ok, y, h) - h
+    dx = so3.mv(k, nu)
     ikh = jnp.eye(6, dtype=cov.dtype) - so3.mm(k, hm)
     cov_new = so3.mm(so3.mm(ikh, cov), ikh.T) + so3.mm(so3.mm(k, r_meas), k.T)
     cov_new = 0.5 * (cov_new + cov_new.T)
     q_new = _qnorm(so3.quat_multiply(q, quat_exp(dx[:3])))
-    return (jnp.where(ok, q_new, q), jnp.where(ok, b_hat + dx[3:], b_hat), jnp.where(ok, cov_new, cov))
+    nll = jnp.where(ok, innovation_nll(nu, s_inv, det_s), 0.0)
+    return (jnp.where(ok, q_new, q), jnp.where(ok, b_hat + dx[3:], b_hat), jnp.where(ok, cov_new, cov), nll)
 
 
 def _finite(v):
@@ -226,32 +252,36 @@ def make_observer() -> Observer:
         dtype = p.p0.dtype
         gyr = jnp.asarray(sample.gyr, dtype)
         q0 = so3.quat_canonical(so3.matrix_to_quat(p.r_hat_0))
-        return State(jnp.asarray(sample.t, dtype), _qnorm(q0), p.b_hat_0, p.p0, jnp.where(_finite(gyr), gyr, 0.0))
+        gyr0 = jnp.where(_finite(gyr), gyr, 0.0)
+        return State(jnp.asarray(sample.t, dtype), _qnorm(q0), p.b_hat_0, p.p0, gyr0, jnp.zeros((), dtype))
 
     def measure(p, q, b, cov, u: ImuSample):
         if u.acc is None or u.mag is None:
             raise ValueError("mekf needs accelerometer and magnetometer samples (acc and mag)")
-        q, b, cov = update(q, b, cov, jnp.where(_finite(u.acc), u.acc, 0.0), p.acc_ref_nav, p.r_acc, _finite(u.acc))
-        return update(q, b, cov, jnp.where(_finite(u.mag), u.mag, 0.0), p.mag_ref_nav, p.r_mag, _finite(u.mag))
+        acc, mag = jnp.where(_finite(u.acc), u.acc, 0.0), jnp.where(_finite(u.mag), u.mag, 0.0)
+        q, b, cov, l1 = _update(q, b, cov, acc, p.acc_ref_nav, p.r_acc, _finite(u.acc))
+        q, b, cov, l2 = _update(q, b, cov, mag, p.mag_ref_nav, p.r_mag, _finite(u.mag))
+        return q, b, cov, (l1 + l2).astype(cov.dtype)
 
     def step(p: Params, s: State, sample, dt):
         if isinstance(sample, Interval):
             g0 = jnp.where(_finite(sample.start.gyr), sample.start.gyr, s.gyr_last)
             g1 = jnp.where(_finite(sample.end.gyr), sample.end.gyr, g0)
             q, cov = propagate(p, s.q, s.b_hat, s.p, 0.5 * (g0 + g1), dt)
-            q, b, cov = measure(p, q, s.b_hat, cov, sample.end)
+            q, b, cov, nll = measure(p, q, s.b_hat, cov, sample.end)
             t0, g_new = sample.start.t, g1
         else:
             g = jnp.where(_finite(sample.gyr), sample.gyr, s.gyr_last)
-            q, b, cov = measure(p, s.q, s.b_hat, s.p, sample)
+            q, b, cov, nll = measure(p, s.q, s.b_hat, s.p, sample)
             q, cov = propagate(p, q, b, cov, g, dt)
             t0, g_new = sample.t, g
         t1 = t0 + dt
-        return State(t1, q, b, cov, g_new), output(p, State(t1, q, b, cov, g_new))
+        s1 = State(t1, q, b, cov, g_new, nll)
+        return s1, output(p, s1)
 
     def output(p: Params, s: State) -> Out:
         sig = jnp.sqrt(jnp.maximum(jnp.diagonal(s.p), 0.0))
-        return Out(s.t, so3.quat_to_matrix(s.q), s.q, s.b_hat, sig)
+        return Out(s.t, so3.quat_to_matrix(s.q), s.q, s.b_hat, sig, s.nll)
 
     return Observer(init=init, step=step, name="mekf", output=output)
 

@@ -72,14 +72,17 @@ class Study(abc.ABC):
     """A paper's simulation study. Subclasses set the class attributes and implement the abstract methods.
 
     Class attributes: ``name`` (CLI name), ``paper`` (reference, with the section), ``tuned`` (label of the observer
-    that ``jaxatt tune`` tunes), ``entry`` (its registry name), ``loss_kind`` (pointwise loss of
-    :mod:`jaxatt.fitting.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric, label) rows of the table).
+    that ``jaxatt tune`` tunes), ``entry`` (its registry name), ``fittable`` (registry name -> label of the other
+    observers the fitter may tune on this study, ``jaxatt.fit(observer=name, data=study)``), ``loss_kind``
+    (pointwise loss of :mod:`jaxatt.fitting.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric,
+    label) rows of the table).
     """
 
     name: str = ""
     paper: str = ""
     tuned: str = ""
     entry: str = ""
+    fittable: Mapping[str, str] = {}
     loss_kind: str = "angle_sq"
     units: Mapping[str, str] = {}
     rows: Sequence[Tuple[str, str]] = ()
@@ -154,16 +157,27 @@ class Study(abc.ABC):
         raise ValueError(f"{self.name} has no figure")
 
     # ---- the fitter's view ----------------------------------------------------------------------------
-    def setup(self, **overrides) -> Setup:
+    def compared(self, cfg, label: str) -> Tuple[Any, Any]:
+        """(Observer, params with the paper's gains) of the compared observer ``label``."""
+        return self.observers(cfg)[label]
+
+    def setup(self, observer: Optional[str] = None, **overrides) -> Setup:
+        """The fitter's view of the study with config ``overrides``, for its tuned observer (``observer`` None or
+        :attr:`entry`) or for another registered observer of :attr:`fittable`."""
         cfg = self.config(**overrides)
-        obs, params = self.observers(cfg)[self.tuned]
+        entry, label = self.entry, self.tuned
+        if observer is not None and observer != self.entry:
+            if observer not in self.fittable:
+                raise ValueError(f"study {self.name} tunes {', '.join([self.entry, *self.fittable])}, not {observer!r}")
+            entry, label = observer, self.fittable[observer]
+        obs, params = self.compared(cfg, label)
         return Setup(
             self.name,
             cfg,
             self.scenario(cfg),
             obs,
             params,
-            self.entry,
+            entry,
             self.errors,
             float(cfg.duration),
             float(cfg.dt),

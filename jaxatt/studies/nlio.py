@@ -552,6 +552,7 @@ class NLIOStudy(base.Study):
     loss_kind = "euler_sq"
     entry = "nlio-fg"
     tuned = "NLIO-FG"
+    fittable = {"nlio": "NLIO-TV", "nlo": "NLO", "mekf": "MEKF"}
 
     def __init__(self, name: str):
         self.name = name
@@ -571,7 +572,10 @@ class NLIOStudy(base.Study):
         return scenario(cfg)
 
     def observers(self, cfg, dtype=None):
-        return {n: (observer(cfg, n), params(cfg, n, dtype=jnp.float64)) for n in cfg.observers}
+        return {n: self.compared(cfg, n) for n in cfg.observers}
+
+    def compared(self, cfg, label):
+        return observer(cfg, label), params(cfg, label, dtype=jnp.float64)
 
     def errors(self, truth, out):
         return errors(truth, out)
