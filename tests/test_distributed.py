@@ -6,8 +6,9 @@ Tolerance: float64 and the same per-run arithmetic on both sides; what differs i
 runs (the loss is the pmean of two per-device means instead of one mean over 4 runs) and XLA's vectorisation of a
 batch of 2 runs per device instead of 4 or 5 (different rounding of the same operations), ~1e-16 relative per
 operation. Over 1200 steps of a stable observer (the Monte Carlo: the complementary observer with noise; the fit:
-batista-so3) and 2 Adam steps that stays far below 1e-9 (relative), while a real fault (a run computed twice or dropped, padding kept, a loss summed instead of averaged, process 1's gradient
-ignored) changes the numbers by 1e-3 or more.
+batista-so3) and 2 Adam steps that stays far below 1e-9 (relative), while a real fault (a run computed twice or
+dropped, padding kept, a loss summed instead of averaged, process 1's gradient ignored) changes the numbers
+by 1e-3 or more.
 
 The processes are started with a timeout so that a hung collective fails the test instead of hanging CI. When the
 processes cannot join (no gloo on this platform, no free port) the test is skipped, except under ``CI=true``,
