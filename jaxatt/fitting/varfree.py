@@ -454,8 +454,13 @@ def expected_reducer(
         return _Acc(z, z, z, z, named), rec
 
     def update(acc, t, truth, lo):
-        mu, sq, nrm, named = moments(truth, lo)
         w = ((t >= starts) & (t < ends)).astype(acc.sq.dtype)
+        if every:  # every record needs the moments
+            mu, sq, nrm, named = moments(truth, lo)
+        else:  # outside the windows nothing is added: skip the error map and its Jacobian there
+            mu0, sq0, nrm0, named0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(moments, truth, lo))
+            zero = (mu0, sq0, nrm0 if mean_norm else nrm0 + jnp.nan, named0)  # E|e| skipped: NaN, as inside
+            mu, sq, nrm, named = jax.lax.cond(jnp.any(w > 0), moments, lambda *_: zero, truth, lo)
         acc = _Acc(
             acc.sq + w * sq,
             acc.norm + w * nrm,
