@@ -96,7 +96,7 @@ __all__ = [
 # Float leaves of a pytree as one vector
 # ------------------------------------------------------------------------------------------------------------
 def _is_float(a) -> bool:
-    return jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating)
+    return jnp.issubdtype(a.dtype if hasattr(a, "dtype") else jnp.asarray(a).dtype, jnp.floating)
 
 
 def _flat(tree) -> jax.Array:
@@ -477,6 +477,27 @@ def expected_reducer(
 # ------------------------------------------------------------------------------------------------------------
 # Tracked coordinates
 # ------------------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _probe(observer: Observer, hold: str, n: int, nc: int, initial, dt: float, dtype_name: str):
+    """``probe(params, scenario) -> (P_0, J_1)`` (jitted, cached on the structure so a second set-up reuses it):
+    the covariance of ``init``'s state and the Jacobian of the first step with every one of the ``n`` floating
+    coordinates tracked."""
+    dtype = jnp.dtype(dtype_name)
+    src = Nominal(1, dt, dtype)
+    obs = linearised_observer(observer, hold, tuple(range(n)), nc, initial)
+
+    @jax.jit
+    def probe(p, scn):
+        _, lin0, _, _ = src.first(scn, None)
+        s0 = obs.init(p, lin0)
+        _, lin1, _, _, _ = src.advance(scn, scn.r0, jnp.zeros((), jnp.int32), None, ())
+        u = lin0 if hold == "zoh" else (lin1 if hold == "next" else Interval(lin0, lin1))
+        j = _step_jacobian(observer, hold, np.arange(n), nc, p, s0.x, u, jnp.asarray(dt, dtype))[0]
+        return s0.p, j
+
+    return probe
+
+
 def tracked_coordinates(
     observer: Observer, scenario, params, *, dt: float, hold: str = "zoh", track=None, dtype=None, initial=None
 ):
@@ -490,8 +511,7 @@ def tracked_coordinates(
     p = engine.cast_floats(params, dtype)
     nc = int(scn.n_channels)
     src = Nominal(1, float(dt), dtype)
-    _, lin0, _, _ = src.first(scn, None)
-    x0 = engine.cast_floats(observer.init(p, lin0.sample), dtype)
+    x0 = jax.eval_shape(lambda p, scn: engine.cast_floats(observer.init(p, src.first(scn, None)[1].sample), dtype), p, scn)
     names = _coordinate_names(x0)
     n = len(names)
     if track is not None:
@@ -506,18 +526,7 @@ def tracked_coordinates(
         if not want:
             raise ValueError(f"track: no state coordinate starts with {pre}; coordinates: {sorted(set(names))[:20]}")
         return tuple(want), names
-    everything = tuple(range(n))
-    obs = linearised_observer(observer, hold, everything, nc, initial)
-
-    @jax.jit
-    def probe(p, scn):
-        s0 = obs.init(p, lin0)
-        _, lin1, _, _, _ = src.advance(scn, scn.r0, jnp.zeros((), jnp.int32), None, ())
-        u = lin0 if hold == "zoh" else (lin1 if hold == "next" else Interval(lin0, lin1))
-        j = _step_jacobian(observer, hold, np.arange(n), nc, p, s0.x, u, jnp.asarray(dt, dtype))[0]
-        return s0.p, j
-
-    p0, j = probe(p, scn)
+    p0, j = _probe(observer, hold, n, nc, initial, float(dt), dtype.name)(p, scn)
     p0, j = np.asarray(p0), np.asarray(j)
     a, b = j[:, :n] - np.eye(n), j[:, n:]
     reach = np.any(p0 != 0, axis=1) | np.any(b != 0, axis=1)
@@ -538,19 +547,34 @@ def check_noise_model(scenario, *, dt: float, dtype=None, draws: int = 16) -> No
     noise map passes, a threshold such as a Gaussian mixture's component selector does not)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     scn = engine.cast_floats(scenario, dtype)
-    nc = int(scn.n_channels)
-    truth = scn.truth_at(scn.r0, jnp.zeros((), dtype))
-    lin = linearised_sample(scn, truth, dt)
-    ns = jax.random.normal(jax.random.PRNGKey(20), (draws, nc), dtype)
-    for n in ns:
-        exact = _flat(scn.sample(truth, n, dt))
-        first = _flat(_perturb(lin.sample, lin.jac, n))
-        step = float(jnp.linalg.norm(first - _flat(lin.sample)))
-        if float(jnp.linalg.norm(exact - first)) > 0.1 * step:
-            raise ValueError(
-                "the scenario's samples are not a smooth function of its noise (e.g. a Gaussian mixture's component "
-                "selector): the variance-free loss would see only their derivative at zero noise; use Monte Carlo"
-            )
+    off, step = _noise_check(float(dt), int(draws), int(scn.n_channels), dtype.name)(scn)
+    if np.any(np.asarray(off) > 0.1 * np.asarray(step)):
+        raise ValueError(
+            "the scenario's samples are not a smooth function of its noise (e.g. a Gaussian mixture's component "
+            "selector): the variance-free loss would see only their derivative at zero noise; use Monte Carlo"
+        )
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_check(dt: float, draws: int, nc: int, dtype_name: str):
+    """``check(scenario) -> (|sample(n) - sample(0) - L n|, |L n|)`` for ``draws`` fixed normal blocks n (jitted,
+    cached: a second set-up of the same structure reuses it)."""
+    dtype = jnp.dtype(dtype_name)
+
+    @jax.jit
+    def check(scn):
+        truth = scn.truth_at(scn.r0, jnp.zeros((), dtype))
+        lin = linearised_sample(scn, truth, dt)
+        ns = jax.random.normal(jax.random.PRNGKey(20), (draws, nc), dtype)
+
+        def one(n):
+            exact = _flat(scn.sample(truth, n, dt))
+            first = _flat(_perturb(lin.sample, lin.jac, n))
+            return jnp.linalg.norm(exact - first), jnp.linalg.norm(first - _flat(lin.sample))
+
+        return jax.vmap(one)(ns)
+
+    return check
 
 
 # ------------------------------------------------------------------------------------------------------------
