@@ -120,6 +120,10 @@ def test_linear_filter_exact(hold):
     assert len(w["records"]["mean_sq"]) == 21 and w["windows"]["w"]["count"] == 10
     np.testing.assert_allclose(w["records"]["mean_sq"], exact[:21], rtol=1e-12)
     np.testing.assert_allclose(w["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
+    # without records the error map is evaluated only on the steps inside a window: the same window means
+    nw = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, windows=(("w", 1.0, 2.0),))
+    np.testing.assert_allclose(nw["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
+    assert nw["windows"]["w"]["count"] == 10 and nw["windows"]["w"]["mean_deg"] > 0
     # a random initial offset (InitialNoise) adds its decaying variance
     init = V.InitialNoise(_toy_initial, 1)
     res = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, initial=init)
