@@ -39,9 +39,8 @@ BEFORE = "4a161d1"  # main before the speed-ups
 
 
 def _old_module():
-    src = subprocess.run(
-        ["git", "show", f"{BEFORE}:jaxatt/fitting/varfree.py"], cwd=HERE.parent, capture_output=True, text=True, check=True
-    ).stdout
+    cmd = ["git", "show", f"{BEFORE}:jaxatt/fitting/varfree.py"]
+    src = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True, check=True).stdout
     path = pathlib.Path(tempfile.mkdtemp()) / "varfree_before.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("jaxatt.fitting._varfree_before", path)

@@ -50,8 +50,9 @@ the nominal and the noisy runs). Not covered:
   noise blocks must match their linearisation (ValueError otherwise). ``mix="sum"`` is linear and exact.
 * The second-order shift of the mean, E[x] - x_nominal = O(P) (negligible when the errors are small).
 
-Cost: one nominal run with (n_active + n_noise) forward tangents per step and a few n x n products; reverse mode
-through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
+Cost: one nominal run with (n_active + n_noise) forward tangents per step and a few n x n products; the error map,
+its Jacobian and the moments only on the steps inside a window (``lax.cond``; every step when records are
+asked for); reverse mode through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
 (:func:`jaxatt.engine.segment_length`). It uses the one scan of :mod:`jaxatt.engine` with its own source
 (:class:`Nominal`), a wrapped observer (:func:`linearised_observer`) and a reducer (:func:`expected_reducer`).
 
@@ -511,7 +512,9 @@ def tracked_coordinates(
     p = engine.cast_floats(params, dtype)
     nc = int(scn.n_channels)
     src = Nominal(1, float(dt), dtype)
-    x0 = jax.eval_shape(lambda p, scn: engine.cast_floats(observer.init(p, src.first(scn, None)[1].sample), dtype), p, scn)
+    x0 = jax.eval_shape(  # shapes only: the names need no evaluation
+        lambda p, scn: engine.cast_floats(observer.init(p, src.first(scn, None)[1].sample), dtype), p, scn
+    )
     names = _coordinate_names(x0)
     n = len(names)
     if track is not None:
