@@ -245,25 +245,28 @@ def test_batista_ges_matches_monte_carlo():
 # ------------------------------------------------------------------------------------------------------------
 #: the short batista-ges set-up of the gradient and fit tests (the same, so the fit reuses the compiled gradient)
 SHORT_GES = {"duration": 4.0, "r_hat_0": (1, 0, 0, 0, 1, 0, 0, 0, 1)}
+SHORT_GES_TUNE = ("alpha1", "alpha2")
 
 
 def test_gradient_matches_finite_differences():
     """The fitter's variance-free objective (jaxatt.fitting.varfree.varfree_objective with the registry's
-    parametrization of batista-ges: log alpha1 / alpha2 per Table-1 interval, gain_z by Cholesky factor, and the
-    study's loss window t >= 2/3 of the run): its gradient by reverse mode through the checkpointed scan of the
-    linearised observer equals central differences along random directions of the unconstrained parameters (a
-    4-s run from R^(0) = I)."""
+    parametrization of batista-ges, tuning log alpha1 / alpha2 per Table-1 interval, and the study's loss window
+    t >= 2/3 of the run): its gradient as the fitter computes it for these 14 numbers (forward mode,
+    fitter.value_and_grad_forward; reverse mode through the checkpointed scan equals it on the linear filter,
+    test_forward_mode_gradient_equals_reverse_mode) equals central differences along random directions of the
+    unconstrained parameters (a 4-s run from R^(0) = I)."""
     from jaxatt.fitting import fitter
     from jaxatt.observers import registry
 
     s = studies.get("batista-ges").setup(**SHORT_GES)
     bound = fitter._parametrization(
-        registry.get(s.entry), s.params, tune=None, freeze=(), masks=None, method=None, transforms=None
+        registry.get(s.entry), s.params, tune=SHORT_GES_TUNE, freeze=(), masks=None, method=None, transforms=None
     )
     spec = losses.loss_spec("angle_sq", steady_start=s.loss_windows["steady"][0])  # as fit builds it
     obj = V.varfree_objective(s, bound, spec)
     theta = bound.init(jnp.float64)
-    vg = jax.jit(jax.value_and_grad(obj, has_aux=True))
+    assert jax.flatten_util.ravel_pytree(theta)[0].size <= fitter.FORWARD_MODE_MAX
+    vg = jax.jit(fitter.value_and_grad_forward(obj))
     batch = jnp.zeros(())
     (loss0, aux), g = vg(theta, batch)
     assert np.isfinite(float(loss0)) and float(aux["leak"]) == 0.0
@@ -318,7 +321,9 @@ def test_fit_with_the_variance_free_objective(tmp_path):
     from jaxatt.fitting import gainsfile
 
     out = tmp_path / "g.json"
-    res = jaxatt.fit(data="batista-ges", objective="varfree", steps=2, lr=0.05, out=str(out), config=SHORT_GES)
+    res = jaxatt.fit(
+        data="batista-ges", objective="varfree", steps=2, lr=0.05, out=str(out), config=SHORT_GES, tune=SHORT_GES_TUNE
+    )
     losses_ = [h["train_loss"] for h in res.history if "train_loss" in h]
     assert len(losses_) == 2 and losses_[1] < losses_[0]
     d = gainsfile.read(out)
