@@ -528,7 +528,8 @@ def fit(
             ``"varfree"`` (its expectation over the noise, computed without runs by covariance propagation along
             the noise-free run, :mod:`jaxatt.fitting.varfree`: no sampling noise in the loss or its gradient, so
             no minibatches and no validation runs; kinds ``angle_sq`` / ``euler_sq``; the study's random
-            initial estimates are not drawn).
+            initial estimates are not drawn; its gradient in forward mode when at most
+            :data:`FORWARD_MODE_MAX` numbers are tuned, else in reverse mode).
     Returns :class:`FitResult`. Raises ValueError (one line) on bad arguments.
     """
 
