@@ -847,7 +847,7 @@ def _fit_study(
         from . import varfree
 
         # a few tunable numbers: forward mode (one tangent each) is cheaper than reverse mode through the scan
-        n_theta = sum(int(np.size(v)) for v in bound.init(jnp.float64).values())
+        n_theta = sum(int(np.size(v)) for v in bound.init(jnp.result_type(float)).values())
         grad_mode = "forward" if n_theta <= FORWARD_MODE_MAX else "reverse"
 
         obj = varfree.varfree_objective(s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat)
