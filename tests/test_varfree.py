@@ -120,6 +120,10 @@ def test_linear_filter_exact(hold):
     assert len(w["records"]["mean_sq"]) == 21 and w["windows"]["w"]["count"] == 10
     np.testing.assert_allclose(w["records"]["mean_sq"], exact[:21], rtol=1e-12)
     np.testing.assert_allclose(w["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
+    # without records the error map is evaluated only on the steps inside a window: the same window means
+    nw = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, windows=(("w", 1.0, 2.0),))
+    np.testing.assert_allclose(nw["windows"]["w"]["mean_sq_deg2"], exact[10:20].mean(), rtol=1e-12)
+    assert nw["windows"]["w"]["count"] == 10 and nw["windows"]["w"]["mean_deg"] > 0
     # a random initial offset (InitialNoise) adds its decaying variance
     init = V.InitialNoise(_toy_initial, 1)
     res = V.predict(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, hold=hold, every=1, initial=init)
@@ -241,25 +245,28 @@ def test_batista_ges_matches_monte_carlo():
 # ------------------------------------------------------------------------------------------------------------
 #: the short batista-ges set-up of the gradient and fit tests (the same, so the fit reuses the compiled gradient)
 SHORT_GES = {"duration": 4.0, "r_hat_0": (1, 0, 0, 0, 1, 0, 0, 0, 1)}
+SHORT_GES_TUNE = ("alpha1", "alpha2")
 
 
 def test_gradient_matches_finite_differences():
     """The fitter's variance-free objective (jaxatt.fitting.varfree.varfree_objective with the registry's
-    parametrization of batista-ges: log alpha1 / alpha2 per Table-1 interval, gain_z by Cholesky factor, and the
-    study's loss window t >= 2/3 of the run): its gradient by reverse mode through the checkpointed scan of the
-    linearised observer equals central differences along random directions of the unconstrained parameters (a
-    4-s run from R^(0) = I)."""
+    parametrization of batista-ges, tuning log alpha1 / alpha2 per Table-1 interval, and the study's loss window
+    t >= 2/3 of the run): its gradient as the fitter computes it for these 14 numbers (forward mode,
+    fitter.value_and_grad_forward; reverse mode through the checkpointed scan equals it on the linear filter,
+    test_forward_mode_gradient_equals_reverse_mode) equals central differences along random directions of the
+    unconstrained parameters (a 4-s run from R^(0) = I)."""
     from jaxatt.fitting import fitter
     from jaxatt.observers import registry
 
     s = studies.get("batista-ges").setup(**SHORT_GES)
     bound = fitter._parametrization(
-        registry.get(s.entry), s.params, tune=None, freeze=(), masks=None, method=None, transforms=None
+        registry.get(s.entry), s.params, tune=SHORT_GES_TUNE, freeze=(), masks=None, method=None, transforms=None
     )
     spec = losses.loss_spec("angle_sq", steady_start=s.loss_windows["steady"][0])  # as fit builds it
     obj = V.varfree_objective(s, bound, spec)
     theta = bound.init(jnp.float64)
-    vg = jax.jit(jax.value_and_grad(obj, has_aux=True))
+    assert jax.flatten_util.ravel_pytree(theta)[0].size <= fitter.FORWARD_MODE_MAX
+    vg = jax.jit(fitter.value_and_grad_forward(obj))
     batch = jnp.zeros(())
     (loss0, aux), g = vg(theta, batch)
     assert np.isfinite(float(loss0)) and float(aux["leak"]) == 0.0
@@ -274,6 +281,39 @@ def test_gradient_matches_finite_differences():
         assert abs(float(fd)) > 1e-6 * float(loss0)
 
 
+def test_forward_mode_gradient_equals_reverse_mode():
+    """The fitter's forward-mode gradient (jaxatt.fitting.fitter.value_and_grad_forward: one jvp per tunable
+    number, used for the variance-free objective when there are few) equals reverse mode through the
+    checkpointed scan, and both equal central differences of the exact window mean of E[e_k^2] of the linear
+    filter (_toy_exact, numpy)."""
+    from jaxatt.fitting import fitter
+
+    sigma, n = 0.3, 40
+    scn = ToyScenario(jnp.asarray(2.0), jnp.asarray(sigma), jnp.eye(3))
+    theta = {"a": jnp.asarray(0.8), "offset": jnp.asarray(0.5)}
+    fn = V.make_predict_fn(
+        TOY, scn, theta, duration=n * 0.1, dt=0.1, kind=_toy_error, windows=(("w", 1.0, 3.0),), checkpoint="auto"
+    )
+
+    def objective(th, batch):
+        r = fn(scn, th)
+        return r["mean_sq_deg2"][0], {"count": r["count"][0]}
+
+    (lr, _), gr = jax.jit(jax.value_and_grad(objective, has_aux=True))(theta, None)
+    (lf, aux), gf = jax.jit(fitter.value_and_grad_forward(objective))(theta, None)
+    assert float(lr) == float(lf) and float(aux["count"]) == 20
+
+    def exact(a, offset):
+        return _toy_exact(a, sigma, offset, n, "zoh")[10:30].mean()
+
+    h = 1e-6
+    fd = {"a": (exact(0.8 + h, 0.5) - exact(0.8 - h, 0.5)) / (2 * h)}
+    fd["offset"] = (exact(0.8, 0.5 + h) - exact(0.8, 0.5 - h)) / (2 * h)
+    for k in theta:
+        np.testing.assert_allclose(float(gf[k]), float(gr[k]), rtol=1e-12)
+        np.testing.assert_allclose(float(gf[k]), fd[k], rtol=1e-7)
+
+
 def test_fit_with_the_variance_free_objective(tmp_path):
     """jaxatt.fit on a study with objective="varfree": no runs, no validation; the loss falls over two Adam steps
     (the set-up of the gradient test) and the gains file records the objective."""
@@ -281,7 +321,9 @@ def test_fit_with_the_variance_free_objective(tmp_path):
     from jaxatt.fitting import gainsfile
 
     out = tmp_path / "g.json"
-    res = jaxatt.fit(data="batista-ges", objective="varfree", steps=2, lr=0.05, out=str(out), config=SHORT_GES)
+    res = jaxatt.fit(
+        data="batista-ges", objective="varfree", steps=2, lr=0.05, out=str(out), config=SHORT_GES, tune=SHORT_GES_TUNE
+    )
     losses_ = [h["train_loss"] for h in res.history if "train_loss" in h]
     assert len(losses_) == 2 and losses_[1] < losses_[0]
     d = gainsfile.read(out)

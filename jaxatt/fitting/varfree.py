@@ -50,8 +50,9 @@ the nominal and the noisy runs). Not covered:
   noise blocks must match their linearisation (ValueError otherwise). ``mix="sum"`` is linear and exact.
 * The second-order shift of the mean, E[x] - x_nominal = O(P) (negligible when the errors are small).
 
-Cost: one nominal run with (n_active + n_noise) forward tangents per step and a few n x n products; reverse mode
-through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
+Cost: one nominal run with (n_active + n_noise) forward tangents per step and a few n x n products; the error map,
+its Jacobian and the moments only on the steps inside a window (``lax.cond``; every step when records are
+asked for); reverse mode through it (``jax.grad`` in the gains) is checkpointed like the Monte Carlo loss
 (:func:`jaxatt.engine.segment_length`). It uses the one scan of :mod:`jaxatt.engine` with its own source
 (:class:`Nominal`), a wrapped observer (:func:`linearised_observer`) and a reducer (:func:`expected_reducer`).
 
@@ -96,7 +97,7 @@ __all__ = [
 # Float leaves of a pytree as one vector
 # ------------------------------------------------------------------------------------------------------------
 def _is_float(a) -> bool:
-    return jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating)
+    return jnp.issubdtype(a.dtype if hasattr(a, "dtype") else jnp.asarray(a).dtype, jnp.floating)
 
 
 def _flat(tree) -> jax.Array:
@@ -454,8 +455,13 @@ def expected_reducer(
         return _Acc(z, z, z, z, named), rec
 
     def update(acc, t, truth, lo):
-        mu, sq, nrm, named = moments(truth, lo)
         w = ((t >= starts) & (t < ends)).astype(acc.sq.dtype)
+        if every:  # every record needs the moments
+            mu, sq, nrm, named = moments(truth, lo)
+        else:  # outside the windows nothing is added: skip the error map and its Jacobian there
+            mu0, sq0, nrm0, named0 = jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(moments, truth, lo))
+            zero = (mu0, sq0, nrm0 if mean_norm else nrm0 + jnp.nan, named0)  # E|e| skipped: NaN, as inside
+            mu, sq, nrm, named = jax.lax.cond(jnp.any(w > 0), moments, lambda *_: zero, truth, lo)
         acc = _Acc(
             acc.sq + w * sq,
             acc.norm + w * nrm,
@@ -472,6 +478,27 @@ def expected_reducer(
 # ------------------------------------------------------------------------------------------------------------
 # Tracked coordinates
 # ------------------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=64)
+def _probe(observer: Observer, hold: str, n: int, nc: int, initial, dt: float, dtype_name: str):
+    """``probe(params, scenario) -> (P_0, J_1)`` (jitted, cached on the structure so a second set-up reuses it):
+    the covariance of ``init``'s state and the Jacobian of the first step with every one of the ``n`` floating
+    coordinates tracked."""
+    dtype = jnp.dtype(dtype_name)
+    src = Nominal(1, dt, dtype)
+    obs = linearised_observer(observer, hold, tuple(range(n)), nc, initial)
+
+    @jax.jit
+    def probe(p, scn):
+        _, lin0, _, _ = src.first(scn, None)
+        s0 = obs.init(p, lin0)
+        _, lin1, _, _, _ = src.advance(scn, scn.r0, jnp.zeros((), jnp.int32), None, ())
+        u = lin0 if hold == "zoh" else (lin1 if hold == "next" else Interval(lin0, lin1))
+        j = _step_jacobian(observer, hold, np.arange(n), nc, p, s0.x, u, jnp.asarray(dt, dtype))[0]
+        return s0.p, j
+
+    return probe
+
+
 def tracked_coordinates(
     observer: Observer, scenario, params, *, dt: float, hold: str = "zoh", track=None, dtype=None, initial=None
 ):
@@ -485,8 +512,9 @@ def tracked_coordinates(
     p = engine.cast_floats(params, dtype)
     nc = int(scn.n_channels)
     src = Nominal(1, float(dt), dtype)
-    _, lin0, _, _ = src.first(scn, None)
-    x0 = engine.cast_floats(observer.init(p, lin0.sample), dtype)
+    x0 = jax.eval_shape(  # shapes only: the names need no evaluation
+        lambda p, scn: engine.cast_floats(observer.init(p, src.first(scn, None)[1].sample), dtype), p, scn
+    )
     names = _coordinate_names(x0)
     n = len(names)
     if track is not None:
@@ -501,18 +529,7 @@ def tracked_coordinates(
         if not want:
             raise ValueError(f"track: no state coordinate starts with {pre}; coordinates: {sorted(set(names))[:20]}")
         return tuple(want), names
-    everything = tuple(range(n))
-    obs = linearised_observer(observer, hold, everything, nc, initial)
-
-    @jax.jit
-    def probe(p, scn):
-        s0 = obs.init(p, lin0)
-        _, lin1, _, _, _ = src.advance(scn, scn.r0, jnp.zeros((), jnp.int32), None, ())
-        u = lin0 if hold == "zoh" else (lin1 if hold == "next" else Interval(lin0, lin1))
-        j = _step_jacobian(observer, hold, np.arange(n), nc, p, s0.x, u, jnp.asarray(dt, dtype))[0]
-        return s0.p, j
-
-    p0, j = probe(p, scn)
+    p0, j = _probe(observer, hold, n, nc, initial, float(dt), dtype.name)(p, scn)
     p0, j = np.asarray(p0), np.asarray(j)
     a, b = j[:, :n] - np.eye(n), j[:, n:]
     reach = np.any(p0 != 0, axis=1) | np.any(b != 0, axis=1)
@@ -533,19 +550,34 @@ def check_noise_model(scenario, *, dt: float, dtype=None, draws: int = 16) -> No
     noise map passes, a threshold such as a Gaussian mixture's component selector does not)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     scn = engine.cast_floats(scenario, dtype)
-    nc = int(scn.n_channels)
-    truth = scn.truth_at(scn.r0, jnp.zeros((), dtype))
-    lin = linearised_sample(scn, truth, dt)
-    ns = jax.random.normal(jax.random.PRNGKey(20), (draws, nc), dtype)
-    for n in ns:
-        exact = _flat(scn.sample(truth, n, dt))
-        first = _flat(_perturb(lin.sample, lin.jac, n))
-        step = float(jnp.linalg.norm(first - _flat(lin.sample)))
-        if float(jnp.linalg.norm(exact - first)) > 0.1 * step:
-            raise ValueError(
-                "the scenario's samples are not a smooth function of its noise (e.g. a Gaussian mixture's component "
-                "selector): the variance-free loss would see only their derivative at zero noise; use Monte Carlo"
-            )
+    off, step = _noise_check(float(dt), int(draws), int(scn.n_channels), dtype.name)(scn)
+    if np.any(np.asarray(off) > 0.1 * np.asarray(step)):
+        raise ValueError(
+            "the scenario's samples are not a smooth function of its noise (e.g. a Gaussian mixture's component "
+            "selector): the variance-free loss would see only their derivative at zero noise; use Monte Carlo"
+        )
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_check(dt: float, draws: int, nc: int, dtype_name: str):
+    """``check(scenario) -> (|sample(n) - sample(0) - L n|, |L n|)`` for ``draws`` fixed normal blocks n (jitted,
+    cached: a second set-up of the same structure reuses it)."""
+    dtype = jnp.dtype(dtype_name)
+
+    @jax.jit
+    def check(scn):
+        truth = scn.truth_at(scn.r0, jnp.zeros((), dtype))
+        lin = linearised_sample(scn, truth, dt)
+        ns = jax.random.normal(jax.random.PRNGKey(20), (draws, nc), dtype)
+
+        def one(n):
+            exact = _flat(scn.sample(truth, n, dt))
+            first = _flat(_perturb(lin.sample, lin.jac, n))
+            return jnp.linalg.norm(exact - first), jnp.linalg.norm(first - _flat(lin.sample))
+
+        return jax.vmap(one)(ns)
+
+    return check
 
 
 # ------------------------------------------------------------------------------------------------------------
