@@ -913,6 +913,9 @@ _COMMANDS = {
 
 _INTERRUPTED: List[int] = []  # signal numbers
 _DEFERRED: List[int] = []
+#: non-empty while main() imports JAX and the library: a KeyboardInterrupt raised inside the import of a compiled
+#: extension can leave it half-initialised and crash the interpreter (SIGSEGV), so a Ctrl-C then leaves at once
+_IMPORTING: List[bool] = []
 #: functions in which an exception is swallowed ("Exception ignored in ..."): a Ctrl-C landing there is re-sent
 _SWALLOWING = {"__del__", "_xla_gc_callback"}
 
@@ -930,7 +933,8 @@ def _on_sigint(signum, frame):
 
     Inside a garbage-collector callback or ``__del__`` the exception would be printed and dropped, so the signal is
     sent again 50 ms later instead."""
-    if _INTERRUPTED and not _DEFERRED:
+    if _IMPORTING or (_INTERRUPTED and not _DEFERRED):  # nothing computed yet, or a second Ctrl-C
+        os.write(2, b"jaxatt: interrupted\n")
         os._exit(130)
     if not _INTERRUPTED:
         _INTERRUPTED.append(signum)
@@ -945,6 +949,7 @@ def _on_sigint(signum, frame):
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        _IMPORTING.append(True)
         import jax
 
         jax.config.update("jax_enable_x64", True)  # the entry point decides the precision (the library never does)
@@ -959,6 +964,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 sys.stdout = open(os.devnull, "w")
         from . import api, studies  # noqa: F401 - imported before any work: an interrupt in an import is not lost
 
+        _IMPORTING.clear()
         if _INTERRUPTED:
             raise KeyboardInterrupt
         return _COMMANDS[args.command](args)
