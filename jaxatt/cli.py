@@ -240,7 +240,7 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--val-runs", type=_count(0), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=int, default=0)
-    tp.add_argument("--lr", type=_positive, default=0.05)
+    tp.add_argument("--lr", type=_positive, default=None, help="step size (default 0.05 for adam, 1 for lbfgs)")
     tp.add_argument(
         "--refine-schedule",
         type=_positive,
@@ -255,6 +255,12 @@ def _parser() -> argparse.ArgumentParser:
         default="montecarlo",
         help="montecarlo: the loss over minibatches of simulated runs; varfree: its expectation over the noise by "
         "covariance propagation along the noise-free run (no runs, no sampling noise)",
+    )
+    tp.add_argument(
+        "--optimizer",
+        choices=("adam", "lbfgs"),
+        default="adam",
+        help="adam; or lbfgs (quasi-Newton with a line search, --lr caps its step): needs --objective varfree",
     )
     tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
     tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
@@ -545,6 +551,8 @@ def _tune(args) -> int:
     from . import io
     from .fitting import fitter
 
+    if args.optimizer == "lbfgs" and args.objective != "varfree":
+        raise UserError("--optimizer lbfgs needs the same loss at every step: use it with --objective varfree")
     io.check_output_path(args.out, "--out")
     config = {"duration": args.duration} if args.duration is not None else None
     from .progress import Heartbeat
@@ -566,6 +574,7 @@ def _tune(args) -> int:
             overwrite=args.overwrite,
             quiet=not _progress(args),
             objective=args.objective,
+            optimizer=args.optimizer,
         )
     print(f"gains written to {res.path} ({res.status})")
     return _fit_status(res)

@@ -50,6 +50,8 @@ from jaxatt.observers import batista_ges as ges
 RESULTS = HERE / "results"
 OUT = RESULTS / "varfree-tune-batista-ges.json"
 GAINS_OUT = RESULTS / "gains-batista-ges-varfree.json"
+#: the L-BFGS stage: from the Adam stage's best gains (``--optimizer lbfgs``)
+GAINS_LBFGS = RESULTS / "gains-batista-ges-varfree-lbfgs.json"
 GROWING = HERE.parent / "jaxatt" / "data" / "gains" / "batista-ges-growing.json"
 
 
@@ -57,7 +59,7 @@ def _payload():
     return io.read_json(OUT) if OUT.exists() else {"experiment": "batista-ges variance-free tuning"}
 
 
-def tune(steps: int, lr: float, resume: bool) -> None:
+def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
     from ges_refined_start import family_transforms
 
     import jaxatt
@@ -65,29 +67,39 @@ def tune(steps: int, lr: float, resume: bool) -> None:
 
     s = studies.get("batista-ges").setup()
     times = np.asarray(schedule.refine(s.params, ges.GROWING_MEMORY_TIMES, ["alpha1", "alpha2"]).switch_times)
+    lbfgs = optimizer == "lbfgs"
+    out = GAINS_LBFGS if lbfgs else GAINS_OUT
     t0 = time.perf_counter()
     res = jaxatt.fit(
         data="batista-ges",
         objective="varfree",
         steps=steps,
-        lr=lr,
+        lr=lr if lr is not None else (1.0 if lbfgs else 0.1),
+        optimizer=optimizer,
+        start=str(GAINS_OUT) if lbfgs else None,
         refine_schedule=ges.GROWING_MEMORY_TIMES,
         transforms=family_transforms(times),
-        out=str(GAINS_OUT),
+        out=str(out),
         resume=resume,
         overwrite=not resume,
         quiet=False,
     )
     payload = _payload()
-    payload["tuning"] = {
+    payload["tuning-lbfgs" if lbfgs else "tuning"] = {
         "status": res.status,
         "best_step": res.best_step,
         "best_loss_deg2": res.best_loss,
         "history": res.history,
         "wall_s": time.perf_counter() - t0,
         "step_s": [h.get("step_s") for h in res.history if "train_loss" in h],
-        "gains": str(GAINS_OUT.relative_to(HERE.parent)),
-        "settings": {"steps": steps, "lr": lr, "family": "research/ges_refined_start.py family_transforms (8)"},
+        "gains": str(out.relative_to(HERE.parent)),
+        "settings": {
+            "steps": steps,
+            "lr": lr,
+            "optimizer": optimizer,
+            "start": str(GAINS_OUT.relative_to(HERE.parent)) if lbfgs else "paper",
+            "family": "research/ges_refined_start.py family_transforms (8)",
+        },
     }
     io.write_json(OUT, payload)
 
@@ -97,6 +109,8 @@ def gain_sets():
     sets = {"paper": s.params, "growing": gainsfile.apply(s.params, gainsfile.read(GROWING)["gains"])}
     if GAINS_OUT.exists():
         sets["varfree-tuned"] = gainsfile.apply(s.params, gainsfile.read(GAINS_OUT)["gains"])
+    if GAINS_LBFGS.exists():
+        sets["varfree-lbfgs"] = gainsfile.apply(s.params, gainsfile.read(GAINS_LBFGS)["gains"])
     return s, sets
 
 
@@ -179,7 +193,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--phase", choices=("tune", "predict", "evaluate"), required=True)
     ap.add_argument("--steps", type=int, default=12)
-    ap.add_argument("--lr", type=float, default=0.1)
+    ap.add_argument("--lr", type=float, default=None, help="Adam: 0.1; L-BFGS: the cap on its step (1)")
+    ap.add_argument(
+        "--optimizer",
+        choices=("adam", "lbfgs"),
+        default="adam",
+        help="adam from the paper's gains, or lbfgs from the Adam stage's best gains",
+    )
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--eval-runs", type=int, default=300)
     ap.add_argument("--eval-seed", type=int, default=4000)
@@ -187,7 +207,7 @@ def main(argv=None):
     ap.add_argument("--sets", nargs="*", help="evaluate only these gain sets (paper, growing, varfree-tuned)")
     a = ap.parse_args(argv)
     if a.phase == "tune":
-        tune(a.steps, a.lr, a.resume)
+        tune(a.steps, a.lr, a.resume, a.optimizer)
     elif a.phase == "predict":
         predict()
     else:

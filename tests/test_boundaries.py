@@ -165,6 +165,8 @@ BAD_INPUT = [
     (["tune", "--experiment", "batista-so3", "--refine-schedule", "-5"], r"argument --refine-schedule"),
     (["tune", "--experiment", "batista-so3", "--lr", "0"], r"argument --lr"),
     (["tune", "--experiment", "batista-so3", "--objective", "nope"], r"argument --objective: invalid choice"),
+    (["tune", "--experiment", "batista-so3", "--optimizer", "sgd"], r"argument --optimizer: invalid choice"),
+    (["tune", "--experiment", "batista-so3", "--optimizer", "lbfgs"], r"--optimizer lbfgs needs .*--objective varfree"),
     (["tune", "--experiment", "nope"], r"argument --experiment"),
     (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/keep.json"], r"not a gains file"),
     (["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/absent.json", "--resume"], r"no gains"),

@@ -314,9 +314,68 @@ def test_forward_mode_gradient_equals_reverse_mode():
         np.testing.assert_allclose(float(gf[k]), fd[k], rtol=1e-7)
 
 
+def test_lbfgs_reaches_the_exact_optimum():
+    """optimize(optimizer="lbfgs") on the deterministic variance-free loss of the linear filter reaches the gain
+    that minimises the exact window mean of E[e_k^2] (_toy_exact, numpy, minimised by golden-section search) in a
+    few steps; it refuses a loss drawn from minibatches."""
+    from jaxatt.fitting import fitter
+
+    sigma, n = 0.3, 60
+    scn = ToyScenario(jnp.asarray(2.0), jnp.asarray(sigma), jnp.eye(3))
+    p = {"a": jnp.asarray(0.5), "offset": jnp.asarray(0.0)}
+    fn = V.make_predict_fn(TOY, scn, p, duration=n * 0.1, dt=0.1, kind=_toy_error, windows=(("w", 1.0, 6.0),))
+
+    def objective(th, batch):  # a = 1 / (1 + exp(-u)): the gain stays inside (0, 1)
+        r = fn(scn, {**p, "a": jax.nn.sigmoid(th["u"])})
+        return r["mean_sq_deg2"][0], {}
+
+    def exact(a):
+        return _toy_exact(a, sigma, 0.0, n, "zoh")[10:60].mean()
+
+    lo, hi = 0.5, 0.999  # golden-section search of the exact loss (unimodal in a on this interval)
+    g = (math.sqrt(5) - 1) / 2
+    for _ in range(80):
+        c, d = hi - g * (hi - lo), lo + g * (hi - lo)
+        lo, hi = (lo, d) if exact(c) < exact(d) else (c, hi)
+    a_star = 0.5 * (lo + hi)
+    assert 0.6 < a_star < 0.99  # an interior optimum
+    res = fitter.optimize(
+        objective,
+        {"u": jnp.asarray(0.0)},
+        steps=12,
+        sampler=fitter.Sampler(1, None, 0),
+        take=lambda idx: jnp.zeros(()),
+        lr=10.0,
+        optimizer="lbfgs",
+        grad="forward",
+    )
+    a_fit = float(jax.nn.sigmoid(res.best_theta["u"]))
+    np.testing.assert_allclose(a_fit, a_star, atol=1e-4)
+    np.testing.assert_allclose(exact(a_fit), exact(a_star), rtol=1e-8)
+    with pytest.raises(ValueError, match="optimizer 'lbfgs' needs the same loss at every step"):
+        fitter.optimize(
+            objective,
+            {"u": jnp.asarray(0.0)},
+            steps=1,
+            sampler=fitter.Sampler(4, 2, 0),
+            take=lambda i: 0.0,
+            optimizer="lbfgs",
+        )
+    with pytest.raises(ValueError, match="optimizer must be one of adam, lbfgs"):
+        fitter.optimize(
+            objective,
+            {"u": jnp.asarray(0.0)},
+            steps=1,
+            sampler=fitter.Sampler(1, None, 0),
+            take=lambda i: 0.0,
+            optimizer="sgd",
+        )
+
+
 def test_fit_with_the_variance_free_objective(tmp_path):
     """jaxatt.fit on a study with objective="varfree": no runs, no validation; the loss falls over two Adam steps
-    (the set-up of the gradient test) and the gains file records the objective."""
+    (the set-up of the gradient test) and the gains file records the objective; then over two L-BFGS steps from
+    those gains."""
     import jaxatt
     from jaxatt.fitting import gainsfile
 
@@ -328,6 +387,35 @@ def test_fit_with_the_variance_free_objective(tmp_path):
     assert len(losses_) == 2 and losses_[1] < losses_[0]
     d = gainsfile.read(out)
     assert d["settings"]["objective"] == "varfree" and "train_runs" not in d["settings"]
+    assert d["settings"]["optimizer"] == "adam"
+    # L-BFGS continues from those gains (the same compiled gradient; the line search only evaluates the loss):
+    # its first step is accepted only if the loss falls, and the resume of an Adam fit by L-BFGS is refused
+    with pytest.raises(ValueError, match="setting 'optimizer' differs"):
+        jaxatt.fit(
+            data="batista-ges",
+            objective="varfree",
+            steps=3,
+            optimizer="lbfgs",
+            out=str(out),
+            resume=True,
+            config=SHORT_GES,
+            tune=SHORT_GES_TUNE,
+            lr=0.05,
+        )
+    out2 = tmp_path / "g2.json"
+    res2 = jaxatt.fit(
+        data="batista-ges",
+        objective="varfree",
+        steps=2,
+        optimizer="lbfgs",
+        start=str(out),
+        out=str(out2),
+        config=SHORT_GES,
+        tune=SHORT_GES_TUNE,
+    )
+    l2 = [h["train_loss"] for h in res2.history if "train_loss" in h]
+    assert len(l2) == 2 and l2[1] < l2[0] <= losses_[1] * (1 + 1e-12)
+    assert gainsfile.read(out2)["settings"]["optimizer"] == "lbfgs" and gainsfile.read(out2)["settings"]["lr"] == 1.0
     with pytest.raises(ValueError, match="objective must be 'montecarlo' or 'varfree'"):
         jaxatt.fit(data="batista-ges", objective="nope", steps=1)
 
