@@ -5,7 +5,8 @@
   3300 s; :func:`jaxatt.schedule.refine`, the observer is unchanged until the tuner moves them), through the
   8-number family of research/ges_refined_start.py (``family_transforms``: two levels of alpha1, two levels and a
   power of t of alpha2, one scale per row of gain_z; the same family the Monte Carlo tuning of
-  research/batista_ges_tuning.md used), Adam at ``--lr``. The loss is E[theta^2] (deg^2) averaged over the
+  research/batista_ges_tuning.md used), Adam at ``--lr``; then (``--optimizer lbfgs``) L-BFGS with a line search from
+  the Adam stage's best gains. The loss is E[theta^2] (deg^2) averaged over the
   steady window t >= 2400 s, computed by :mod:`jaxatt.fitting.varfree` (no runs, no sampling noise: no minibatch,
   no validation runs). Gains file: research/results/gains-batista-ges-varfree.json (rewritten after every
   step; ``--resume`` continues it).
@@ -22,7 +23,9 @@ held-out evaluation), updated after every phase and every chunk of runs.
 
 Usage: python research/varfree_tune.py --phase tune [--steps 12] [--lr 0.1] [--resume]
        python research/varfree_tune.py --phase predict
+       python research/varfree_tune.py --phase tune --optimizer lbfgs --steps 15   (from the Adam stage's best)
        python research/varfree_tune.py --phase evaluate [--eval-runs 300] [--eval-seed 4000]
+       python research/varfree_tune.py --phase ship   (jaxatt/data/gains/batista-ges-gradient.json)
 """
 
 from __future__ import annotations
@@ -53,6 +56,8 @@ GAINS_OUT = RESULTS / "gains-batista-ges-varfree.json"
 #: the L-BFGS stage: from the Adam stage's best gains (``--optimizer lbfgs``)
 GAINS_LBFGS = RESULTS / "gains-batista-ges-varfree-lbfgs.json"
 GROWING = HERE.parent / "jaxatt" / "data" / "gains" / "batista-ges-growing.json"
+#: the shipped gradient-tuned gains (``--phase ship``: the L-BFGS stage's file without its resume state)
+SHIPPED = HERE.parent / "jaxatt" / "data" / "gains" / "batista-ges-gradient.json"
 
 
 def _payload():
@@ -189,9 +194,31 @@ def evaluate(runs: int, seed: int, chunk: int, only=None) -> None:
     io.write_json(OUT, payload)
 
 
+def ship() -> None:
+    """Write the L-BFGS stage's best gains as the shipped jaxatt/data/gains/batista-ges-gradient.json: the same
+    gains file without the resume state, with the Adam stage's history (the whole path from the paper's gains)."""
+    d = io.read_json(GAINS_LBFGS)
+    if d.get("status") not in ("done", "early-stopped"):
+        raise SystemExit(f"{GAINS_LBFGS}: status {d.get('status')!r}; finish the tuning first")
+    adam = io.read_json(GAINS_OUT)
+    d.pop("resume", None)
+    d["notes"] = [
+        "tuned by gradients alone from the paper's gains (Table 1 and the literal Q of batista2019-ges Section IV) "
+        "on the variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
+        f"{sum('train_loss' in h for h in adam['history'])} Adam steps (lr 0.1), then "
+        f"{sum('train_loss' in h for h in d['history'])} L-BFGS steps, through the 8-number family of "
+        "research/ges_refined_start.py; no Monte Carlo runs were used",
+        "rerun: python research/varfree_tune.py --phase tune --steps 13; --phase tune --optimizer lbfgs --steps 15; "
+        "--phase ship",
+    ]
+    d["adam_stage"] = {"history": adam["history"], "settings": adam["settings"], "best_loss": adam.get("best_loss")}
+    io.write_json(SHIPPED, d)
+    print(f"wrote {SHIPPED.relative_to(HERE.parent)} (best loss {d.get('best_loss')})")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--phase", choices=("tune", "predict", "evaluate"), required=True)
+    ap.add_argument("--phase", choices=("tune", "predict", "evaluate", "ship"), required=True)
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--lr", type=float, default=None, help="Adam: 0.1; L-BFGS: the cap on its step (1)")
     ap.add_argument(
@@ -210,6 +237,8 @@ def main(argv=None):
         tune(a.steps, a.lr, a.resume, a.optimizer)
     elif a.phase == "predict":
         predict()
+    elif a.phase == "ship":
+        ship()
     else:
         evaluate(a.eval_runs, a.eval_seed, a.eval_chunk, a.sets)
 

@@ -304,3 +304,26 @@ def test_growing_memory_schedule_extends_table1():
     for bad in ({"k": 0.0}, {"early_scale": -1.0}, {"gain_z_scale": np.nan}, {"grow_from": 0.0}):
         with pytest.raises(ValueError, match="growing_memory_params"):
             ges.growing_memory_params(p, **bad)
+
+
+def test_shipped_gradient_gains():
+    """jaxatt/data/gains/batista-ges-gradient.json (tuned by gradients alone on the variance-free loss; held-out
+    numbers in docs/observers/batista_ges.md) is read by `jaxatt evaluate --gains` as batista-ges params of the
+    paper's study; every gain is positive, so Theorems 1-3 of the GES paper hold on each interval; it was tuned
+    from the paper's gains without Monte Carlo runs, and its memory alpha1 / alpha2 of eq. (15) grows with time
+    after 900 s (what the gradient found, as the searched growing-memory gains assumed)."""
+    import pathlib
+
+    from jaxatt.fitting import gainsfile
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "jaxatt" / "data" / "gains" / "batista-ges-gradient.json"
+    d = gainsfile.read(path)
+    assert d["settings"]["objective"] == "varfree" and d["settings"]["optimizer"] == "lbfgs"
+    assert "train_runs" not in d["settings"] and "resume" not in d
+    assert d["adam_stage"]["settings"]["objective"] == "varfree"  # the first stage started from the paper's gains
+    q = gainsfile.read_params(path, "batista-ges")
+    ges.check_params(q)
+    t = np.arange(900.0, 3600.0, 1.0)
+    a1, a2 = (np.asarray(x) for x in ges._schedule(q, jnp.asarray(t)))
+    memory = a1 / a2
+    assert np.all(np.diff(memory) >= 0) and memory[-1] > 2.0 * memory[0]

@@ -6,6 +6,8 @@
   stratified by group (:func:`jaxatt.data.broad.stratified_folds`), for out-of-fold numbers.
 * ``batista-ges-growing.json``, ``batista-so3.json``, ``nlio-case1.json``: gains tuned on simulated seeds of those
   studies (``jaxatt evaluate --experiment E --gains FILE`` reads them).
+* ``batista-ges-gradient.json``: batista-ges tuned by gradients alone on the variance-free loss (no runs; Adam then
+  L-BFGS from the paper's gains; research/varfree_tune.py).
 
 Derived from the BROAD dataset (D. Laidig, M. Caruso, A. Cereatti, T. Seel, "BROAD - A Benchmark for Robust
 Inertial Orientation Estimation", Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0).
