@@ -352,6 +352,12 @@ def test_lbfgs_reaches_the_exact_optimum():
     a_fit = float(jax.nn.sigmoid(res.best_theta["u"]))
     np.testing.assert_allclose(a_fit, a_star, atol=1e-4)
     np.testing.assert_allclose(exact(a_fit), exact(a_star), rtol=1e-8)
+    # stopped after 4 steps and resumed from its saved state (JSON lists), it ends where the uninterrupted run ends
+    kw = dict(sampler=fitter.Sampler(1, None, 0), take=lambda idx: jnp.zeros(()), lr=10.0, optimizer="lbfgs")
+    part = fitter.optimize(objective, {"u": jnp.asarray(0.0)}, steps=4, grad="forward", **kw)
+    rest = fitter.optimize(objective, {"u": jnp.asarray(0.0)}, steps=12, grad="forward", resume=part.resume, **kw)
+    np.testing.assert_allclose(float(rest.last_theta["u"]), float(res.last_theta["u"]), rtol=1e-12)
+    assert [h["train_loss"] for h in rest.history] == pytest.approx([h["train_loss"] for h in res.history], rel=1e-12)
     with pytest.raises(ValueError, match="optimizer 'lbfgs' needs the same loss at every step"):
         fitter.optimize(
             objective,
