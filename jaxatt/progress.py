@@ -117,24 +117,38 @@ class TextProgress:
             close_line(self.file)
 
 
+def _is_terminal(file) -> bool:
+    try:
+        return bool(file.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
 class Heartbeat:
     """Context manager: while a long call runs, rewrite one line ``label: N s`` on ``file`` (default stderr) every
     ``every_s`` seconds in which no other progress report (:class:`TextProgress`) came (compiling, a BROAD batch,
-    a long log); nothing when ``enabled`` is false. The line is ended when the block exits."""
+    a long log); nothing when ``enabled`` is false. The line is ended when the block exits. On a file that is not
+    a terminal (a log) it writes whole lines instead, at most one every ``log_every_s`` seconds."""
 
-    def __init__(self, label: str, enabled: bool = True, every_s: float = 2.0, file=None):
+    def __init__(self, label: str, enabled: bool = True, every_s: float = 2.0, file=None, log_every_s: float = 60.0):
         self.label, self.enabled, self.every_s = label, bool(enabled), every_s
         self.file = file if file is not None else sys.stderr
+        self.log_every_s = log_every_s
         self._stop = threading.Event()
 
     def _beat(self):
         t0 = time.perf_counter()
-        while not self._stop.wait(self.every_s):
-            if time.perf_counter() - _LINE["last_report"] < self.every_s:
+        terminal = _is_terminal(self.file)
+        every = self.every_s if terminal else max(self.every_s, self.log_every_s)
+        while not self._stop.wait(every):
+            if time.perf_counter() - _LINE["last_report"] < every:
                 continue
-            self.file.write(f"\r{self.label}: {time.perf_counter() - t0:.0f} s ")
+            if terminal:
+                self.file.write(f"\r{self.label}: {time.perf_counter() - t0:.0f} s ")
+                _LINE["open"] = True
+            else:
+                self.file.write(f"{self.label}: {time.perf_counter() - t0:.0f} s\n")
             self.file.flush()
-            _LINE["open"] = True
 
     def __enter__(self):
         _LINE["last_report"] = -1e9

@@ -370,3 +370,38 @@ def test_compile_cache_dir(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
     assert cli.compile_cache_dir({"JAXATT_COMPILE_CACHE": str(blocker / "xla")}) is None
+
+
+class _Terminal:
+    """A stream that says it is a terminal (collects what is written)."""
+
+    def __init__(self):
+        self.text = ""
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return True
+
+
+def test_heartbeat_rewrites_one_line_in_a_terminal_and_writes_whole_lines_to_a_log():
+    """``--progress`` while compiling: in a terminal one self-overwriting line (\\r), in a log file whole lines
+    at most every ``log_every_s`` (a redirected long tune must not become one endless line)."""
+    import io
+    import time
+
+    from jaxatt.progress import Heartbeat
+
+    term, log = _Terminal(), io.StringIO()
+    with Heartbeat("job", every_s=0.01, file=term):
+        time.sleep(0.2)
+    with Heartbeat("job", every_s=0.01, file=log, log_every_s=0.1):
+        time.sleep(0.35)
+    assert term.text.count("\rjob: ") >= 3 and term.text.endswith("\n")
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and 1 <= len(lines) <= 4, lines
+    assert all(ln.startswith("job: ") and ln.endswith(" s") for ln in lines)
