@@ -1,14 +1,17 @@
 """Out-of-fold tuning of the classic filters on BROAD (issue 18, item 4): for each registered observer named,
 2-fold cross-validation on the trials of ``--data-dir`` (``jaxatt.data.broad.stratified_folds``): its gains are
-learnt with ``jaxatt.fit`` on one fold (from its default gains, float32, ``--steps`` Adam steps, cosine decay)
-and every trial of the other fold is scored with them (``jaxatt.broad_score``, float64), beside the same
-observer with its default gains. Gains files go to ``--folds-dir`` as ``<name>_broad_fold<k>.json`` (k = the
-fold tuned on); an existing file is reused unless ``--retrain``.
+learnt with ``jaxatt.fit`` on one fold (from its untuned default gains, never from shipped ones, float32,
+``--steps`` Adam steps, cosine decay) and every trial of the other fold is scored with them
+(``jaxatt.broad_score``, float64), beside the same observer with its default gains. Gains files go to
+``--folds-dir`` as ``<name>_broad_fold<k>.json`` (k = the fold tuned on); an existing file is reused
+unless ``--retrain``.
 
 Usage:
   python research/broad_oof_tuning.py --observers vqf madgwick mahony [--steps 40] [--folds-dir DIR] [--diagonal]
+  python research/broad_oof_tuning.py --observers robust [--freeze mag_delay]
 
-``--diagonal`` learns the SPD gains (e.g. the MEKF's noise covariances) as diagonal matrices.
+``--diagonal`` learns the SPD gains (e.g. the MEKF's noise covariances) as diagonal matrices. ``--freeze`` keeps
+the named gains at their defaults (gains files ``<name>_freeze-<gains>_broad_fold<k>``).
 
 Writes research/results/broad-oof-tuning-<host>-<UTC>.json (per trial and per group, default and tuned) and
 prints the group means.
@@ -41,6 +44,7 @@ def main(argv=None) -> int:
         action="store_true",
         help="learn SPD gains (e.g. noise covariances) as diagonal matrices; gains files <name>_diag_broad_fold<k>",
     )
+    ap.add_argument("--freeze", nargs="+", default=[], help="gains kept at their defaults")
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
 
@@ -70,7 +74,10 @@ def main(argv=None) -> int:
             g.field: parametrize.SPD(structure="diagonal") for g in entry.gains if g.constraint == "spd" and g.tuned
         }
         tag = f"{name}_diag" if args.diagonal else name
-        default = jaxatt.broad_score(name, None, list(trials.values()))
+        if args.freeze:
+            tag += "_freeze-" + "-".join(args.freeze)
+        start = entry.default_params(jnp.float32)  # untuned: a shipped gains file may have seen every trial
+        default = jaxatt.broad_score(name, entry.default_params(jnp.float64), list(trials.values()))
         tuned, fits = {}, []
         for k, train in enumerate(folds, start=1):
             path = folds_dir / f"{tag}_broad_fold{k}.json"
@@ -79,12 +86,13 @@ def main(argv=None) -> int:
                 print(f"{name}: fitting on fold {k} ({len(train)} trials) -> {path}", flush=True)
                 jaxatt.fit(
                     name,
-                    None,
+                    start,
                     [trials[n] for n in train],
                     steps=args.steps,
                     lr=args.lr,
                     dtype="float32",
                     transforms=diag if args.diagonal else None,
+                    freeze=tuple(args.freeze),
                     out=str(path),
                     overwrite=True,
                 )

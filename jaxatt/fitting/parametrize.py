@@ -94,16 +94,19 @@ class Transform(abc.ABC):
 
 @dataclasses.dataclass(frozen=True)
 class Identity(Transform):
-    """x = u (no constraint)."""
+    """x = scale * u (no constraint). ``scale`` sets what one unit of u is worth, so that an optimizer's step of
+    about ``lr`` in u is a sensible step of the gain (e.g. 0.01 for a delay in seconds)."""
+
+    scale: float = 1.0
 
     def inverse(self, value):
-        return np.asarray(value, float)
+        return np.asarray(value, float) / self.scale
 
     def forward(self, u):
-        return u
+        return u * self.scale if self.scale != 1.0 else u
 
     def describe(self):
-        return "unconstrained"
+        return "unconstrained" if self.scale == 1.0 else f"unconstrained (scale {self.scale:g})"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -455,7 +458,7 @@ def from_constraint(gain) -> Transform:
     if c == "spd-diagonal":
         return SPD(structure="diagonal")
     if c == "real":
-        return Identity()
+        return Identity(scale=gain.scale or 1.0)
     raise ValueError(f"gain {gain.field}: unknown constraint {c!r}")
 
 

@@ -59,6 +59,8 @@ class Gain(NamedTuple):
             values; e.g. time constants between 0.05 s and 30 s).
         rate: optional (label, fn(params) -> factor): ``value * factor`` is also written in gains files (e.g. the
             gain as a rate in 1/s when its own unit is 1/(s nT^2)).
+        scale: optional, for "real" gains: the fitter learns value / scale (one unit of it is a sensible step;
+            e.g. 0.01 for a delay in seconds).
     """
 
     field: str
@@ -68,6 +70,7 @@ class Gain(NamedTuple):
     tuned: bool = True
     bounds: Optional[Tuple[float, float]] = None
     rate: Optional[Tuple[str, Callable[[Any], Any]]] = None
+    scale: Optional[float] = None
 
 
 class Entry(NamedTuple):

@@ -23,11 +23,17 @@ orientation estimation with bias estimation and magnetic disturbance rejection",
    vertical (ENU z). The magnetometer never changes roll or pitch.
 3. Gyro bias. (a) At rest: b^ follows the low-passed gyro with time constant ``tau_bias_rest``, weighted by a
    smooth rest detector (gyro and acc deviations from their ``tau_rest`` low-pass below ``rest_th_gyr`` /
-   ``rest_th_acc``, held for ``rest_hold`` s). (b) In motion: Mahony's integral of the corrections,
-   b^ <- b^ - phi_B / ``tau_bias``, phi_B the inclination correction of the step (rotation vector, body frame),
-   saturated at 0.01 rad against wind-up (steady operation stays far below). |b^_i| <= ``bias_max``. The
-   heading corrections do not feed the bias (a bias change along the current vertical would tilt the estimate
-   once the sensor turns), so the magnetometer never acts on the inclination, not even through the bias.
+   ``rest_th_acc`` and the low-passed gyro a plausible bias, below ``bias_max``, held for ``rest_hold`` s).
+   (b) In motion: Mahony's integral of the corrections, b^ <- b^ - phi_B / ``tau_bias``, phi_B the inclination
+   correction of the step (rotation vector, body frame), saturated at 0.01 rad against wind-up (steady operation
+   stays far below). |b^_i| <= ``bias_max``. The heading corrections do not feed the bias (a bias change along
+   the current vertical would tilt the estimate once the sensor turns), so the magnetometer never acts on the
+   inclination, not even through the bias.
+
+4. Magnetometer delay. Many IMUs sample or filter the magnetometer later than the gyro (about 10 ms on BROAD's
+   sensor: during fast rotations the field then points several degrees off). Each mag sample is turned forward
+   by ``mag_delay`` s with the current gyro rate, m <- exp(-(w x) mag_delay) m (to second order), before any use.
+   0 (the default) leaves it as it is; :func:`jaxatt.fit` learns it with the rest.
 
 Gates (smooth, learnable). Each uses a normalised squared deviation e >= 0, clipped at 2 and held with a linear
 decay ("e_h = max(min(e, 2), e_h - dt / hold)", so a deviation keeps the gate shut for ``hold`` s after it
@@ -113,6 +119,8 @@ class Params(NamedTuple):
         gravity: |g| (m/s^2) for the acc gate.
         gate_sharpness: slope of the sigmoid gates (1); large -> hard thresholds.
         bias_max: bound on each bias component (rad/s).
+        mag_delay: delay of the magnetometer behind the gyro (s; 0: none, may be negative). Each mag sample is
+            turned forward by it with the gyro rate before use: m <- exp(-(w x) mag_delay) m, to second order.
     """
 
     tau_acc: ArrayLike
@@ -133,10 +141,12 @@ class Params(NamedTuple):
     gravity: ArrayLike
     gate_sharpness: ArrayLike
     bias_max: ArrayLike
+    mag_delay: ArrayLike = 0.0
 
 
 PARAM_NAMES = Params._fields
-#: Parameters :func:`jaxatt.fit` learns by default (all positive; learnt in log space within bounds).
+#: Parameters :func:`jaxatt.fit` learns by default (all positive and learnt in log space within bounds, but the
+#: real ``mag_delay``).
 TUNABLE = (
     "tau_acc",
     "tau_acc_2",
@@ -153,6 +163,7 @@ TUNABLE = (
     "mag_dip_th",
     "mag_hold",
     "tau_mag_ref",
+    "mag_delay",
 )
 
 _DEFAULTS = dict(
@@ -174,6 +185,7 @@ _DEFAULTS = dict(
     gravity=9.81,
     gate_sharpness=6.0,
     bias_max=2.0 * _DEG,
+    mag_delay=0.0,
 )
 
 
@@ -290,6 +302,7 @@ class Coeffs(NamedTuple):
     gate_lo: jax.Array
     gate_scale: jax.Array
     bias_max: jax.Array
+    mag_delay: jax.Array
 
 
 def coefficients(p: Params, dt) -> Coeffs:
@@ -318,6 +331,7 @@ def coefficients(p: Params, dt) -> Coeffs:
         gate_lo=lo,
         gate_scale=1.0 / (1.0 - 2.0 * lo),
         bias_max=p.bias_max,
+        mag_delay=p.mag_delay,
     )
 
 
@@ -435,6 +449,14 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     one, zero = jnp.ones_like(qw), jnp.zeros_like(qw)
     mx, my, mz = jnp.where(mag_ok, mx, zero), jnp.where(mag_ok, my, one), jnp.where(mag_ok, mz, zero)
     fa, fm = acc_ok.astype(qw.dtype), mag_ok.astype(qw.dtype)
+    # magnetometer delay: a sample measured mag_delay s ago is turned by the rotation since then,
+    # m(t) = exp(-(w x) tau) m(t - tau) for a constant body rate w (m fixed in the earth frame), to second order
+    tau = c.mag_delay
+    ux, uy, uz = gx - bx, gy - by, gz - bz
+    cx1, cy1, cz1 = uy * mz - uz * my, uz * mx - ux * mz, ux * my - uy * mx  # w x m
+    cx2, cy2, cz2 = uy * cz1 - uz * cy1, uz * cx1 - ux * cz1, ux * cy1 - uy * cx1  # w x (w x m)
+    half_tau2 = 0.5 * tau * tau
+    mx, my, mz = mx - tau * cx1 + half_tau2 * cx2, my - tau * cy1 + half_tau2 * cy2, mz - tau * cz1 + half_tau2 * cz2
 
     # --- rest detection (sensor frame) ---
     kr = c.k_rest
@@ -443,9 +465,14 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     abx, aby, abz = abx + kra * (ax - abx), aby + kra * (ay - aby), abz + kra * (az - abz)
     dgx, dgy, dgz = gx - glx, gy - gly, gz - glz
     dax, day, daz = ax - abx, ay - aby, az - abz
-    e_rest = (dgx * dgx + dgy * dgy + dgz * dgz) * c.inv_rest_gyr2 + (
-        dax * dax + day * day + daz * daz
-    ) * c.inv_rest_acc2
+    # a steady rotation is not rest however quiet the gyro is: the low-passed rate must also be a plausible bias
+    # (VQF's bias-clip test; (|lp(gyr)| / bias_max)^4: 0.06 at half of bias_max, 1 at it)
+    r_bias = (glx * glx + gly * gly + glz * glz) / (c.bias_max * c.bias_max)
+    e_rest = (
+        (dgx * dgx + dgy * dgy + dgz * dgz) * c.inv_rest_gyr2
+        + (dax * dax + day * day + daz * daz) * c.inv_rest_acc2
+        + r_bias * r_bias
+    )
     rest_e = _hold(rest_e, e_rest, c.dec_rest)
     w_rest = _gate(rest_e, c)
     anorm = jnp.sqrt(ax * ax + ay * ay + az * az)
@@ -705,10 +732,16 @@ def make_observer() -> Observer:
 # Registry
 # ------------------------------------------------------------------------------------------------------------
 def check_params(p: Params) -> None:
-    """Raise ValueError naming the first parameter that is not a finite positive scalar."""
+    """Raise ValueError naming the first parameter that is not a finite positive scalar (``mag_delay``: a finite
+    scalar of at most 1 s either way)."""
     for name in PARAM_NAMES:
         v = np.asarray(getattr(p, name), float)
-        if v.shape != () or not np.isfinite(v) or v <= 0:
+        if name == "mag_delay":
+            if v.shape != () or not np.isfinite(v) or abs(v) > 1.0:
+                raise ValueError(
+                    f"robust AHRS parameter mag_delay must be a finite number of seconds in [-1, 1], got {v}"
+                )
+        elif v.shape != () or not np.isfinite(v) or v <= 0:
             raise ValueError(f"robust AHRS parameter {name} must be a finite positive number, got {v}")
 
 
@@ -731,6 +764,7 @@ _UNITS = dict(
     gravity="m/s^2",
     gate_sharpness="1",
     bias_max="rad/s",
+    mag_delay="s",
 )
 _BOUNDS = dict(
     tau_acc=(0.05, 30.0),
@@ -778,7 +812,10 @@ ENTRIES = (
         make=make_observer,
         default_params=default_params,
         gains=tuple(
-            registry.Gain(f, _UNITS[f], _DOCS[f], "positive", f in TUNABLE, _BOUNDS.get(f)) for f in PARAM_NAMES
+            registry.Gain(f, _UNITS[f], _DOCS[f], "positive", f in TUNABLE, _BOUNDS.get(f))
+            if f != "mag_delay"
+            else registry.Gain(f, _UNITS[f], _DOCS[f], "real", True, scale=0.01)
+            for f in PARAM_NAMES
         ),
         frame="ENU",
         hold="next",
