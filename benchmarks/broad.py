@@ -21,7 +21,7 @@ Filters and conventions:
 * **jaxatt robust AHRS out of fold** (``jaxatt-robust-oof``): the folds are :func:`jaxatt.data.broad.stratified_folds`
   of all trials in ``--data-dir``; each selected trial is scored (``jaxatt.broad_score``, float64) with the gains
   tuned on the OTHER fold: the shipped ``robust_broad_fold{1,2}.json`` (each file must name the fold it was tuned
-  on), or with ``--retrain-folds`` gains re-learnt first by ``jaxatt.fit("robust", None, fold, steps=--steps,
+  on), or with ``--retrain-folds`` gains re-learnt first by ``jaxatt.fit("robust", defaults, fold, steps=--steps,
   lr=--lr, dtype=float32, out=--folds-dir/robust_broad_fold{k}.json)`` from the untuned defaults (about 3-5 min
   per fold on 2 CPU cores; ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false`` roughly halves a gradient on CPU).
   Its wall time includes compiling.
@@ -346,6 +346,7 @@ def run_jaxatt_oof(data_dir, trials, name="robust", *, retrain=False, steps=40, 
     import jaxatt
     from jaxatt.data import broad
     from jaxatt.fitting import gainsfile
+    from jaxatt.observers import registry
 
     all_names = broad.resolve_trials(data_dir)
     folds = broad.stratified_folds(all_names, broad.load_trial_info(data_dir))
@@ -365,7 +366,11 @@ def run_jaxatt_oof(data_dir, trials, name="robust", *, retrain=False, steps=40, 
             if None in train_trials:
                 train_trials = broad.load(data_dir, train)
             print(f"  fold {k}: fitting on {len(train)} trials -> {path} ...", flush=True)
-            jaxatt.fit("robust", None, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path), overwrite=True)
+            # from the untuned defaults: the shipped gains have seen every trial
+            start = registry.get("robust").default_params(jnp.float32)
+            jaxatt.fit(
+                "robust", start, train_trials, steps=steps, lr=lr, dtype="float32", out=str(path), overwrite=True
+            )
         else:
             path = fold_gains_path(name, k, gains_dir)
         payload = gainsfile.read(path)
