@@ -501,24 +501,47 @@ METRIC_REDUCER = engine.Reducer(_metric_init, _metric_update, _metric_finish)
 
 
 def metric_batch(
-    observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None, step_remat: bool = False
+    observer: Observer,
+    trials: Sequence[Trial],
+    *,
+    hold: str = "next",
+    dtype=None,
+    step_remat: bool = False,
+    checkpoint=None,
 ):
     """(``fn(params, item) -> {metric: (B,) RMSE deg}``, item): the BROAD metric of ``observer`` over a batch item
     of padded trials (rows may be selected: ``item[i]`` for a minibatch), and the item of ``trials``. Pure JAX in
-    the params; ``step_remat`` rematerialises each step in the reverse pass (memory: one state per step and trial)."""
+    the params. For gradients: ``checkpoint`` ("auto", a segment length in steps, None: off;
+    :func:`jaxatt.engine.segment_length`) stores one state per segment and recomputes each segment in the reverse
+    pass; ``step_remat`` rematerialises each step as well (least memory, slowest)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     padded = pad_trials(trials)
     n_steps = int(padded.samples.t.shape[1]) - 1
     fn = engine.compiled(
-        observer, engine.Recorded(n_steps, False), METRIC_REDUCER, hold=hold, obs_dtype=dtype, step_remat=step_remat
+        observer,
+        engine.Recorded(n_steps, False),
+        METRIC_REDUCER,
+        hold=hold,
+        obs_dtype=dtype,
+        segment=engine.segment_length(n_steps, checkpoint),
+        step_remat=step_remat,
     )
     return (lambda params, item: fn(None, params, item).summary), batch_item(padded, dtype)
 
 
-def metric_fn(observer: Observer, trials: Sequence[Trial], *, hold: str = "next", dtype=None, step_remat: bool = False):
+def metric_fn(
+    observer: Observer,
+    trials: Sequence[Trial],
+    *,
+    hold: str = "next",
+    dtype=None,
+    step_remat: bool = False,
+    checkpoint=None,
+):
     """``fn(params) -> {metric: (B,) RMSE deg}``: the BROAD metric of ``observer`` on ``trials`` as a pure JAX
-    function of the params (jit it, vmap it over a grid of gains, differentiate it), all trials in one scan."""
-    fn, item = metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat)
+    function of the params (jit it, vmap it over a grid of gains, differentiate it), all trials in one scan
+    (``checkpoint``, ``step_remat``: :func:`metric_batch`)."""
+    fn, item = metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint)
     return lambda params: fn(params, item)
 
 

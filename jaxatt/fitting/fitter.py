@@ -400,14 +400,22 @@ def _broad_weights(groups: Sequence[str]) -> np.ndarray:
 
 
 def recorded_objective(
-    observer, bound: P.BoundParametrization, trials, *, hold: str = "next", dtype=None, step_remat: bool = True
+    observer,
+    bound: P.BoundParametrization,
+    trials,
+    *,
+    hold: str = "next",
+    dtype=None,
+    step_remat: bool = False,
+    checkpoint="auto",
 ):
     """(objective(theta, batch), n_trials, take(indices) -> batch): the group-weighted mean per-trial total RMSE
-    (deg, BROAD metric) of ``observer`` on ``trials``, through the whole scan (each step rematerialised in the
-    reverse pass, so memory is one state per step and trial). ``aux["metric"]``: the same mean."""
+    (deg, BROAD metric) of ``observer`` on ``trials``, through the whole scan (checkpointed: the reverse pass
+    stores one state per segment of about sqrt(T) steps and trial and recomputes each segment;
+    :func:`jaxatt.data.broad.metric_batch`). ``aux["metric"]``: the same mean."""
     from ..data import broad as B
 
-    fn, item = B.metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat)
+    fn, item = B.metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint)
     groups = [t.group or B.group_of(t.name) for t in trials]
 
     def take(idx):
@@ -561,7 +569,10 @@ def fit(
         out: gains file rewritten after every step (best gains, start, settings, history, provenance and the
             resume state). ``resume``: continue from it. ``overwrite``: replace a finished one.
         dtype: arithmetic (default: float64 when x64 is on for studies; for trials the data's).
-        loss, transient_weight, config, refine_schedule, checkpoint, step_remat, devices: study options
+        checkpoint, step_remat: memory of the reverse pass (:func:`jaxatt.engine.segment_length`: "auto" stores
+            one state per segment of about sqrt(T) steps and recomputes each segment; ``step_remat`` also
+            rematerialises each step: least memory, about 3x slower on trials).
+        loss, transient_weight, config, refine_schedule, devices: study options
             (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`); ``loss="innovation_nll"`` fits a
             Kalman filter's noise parameters by maximum likelihood of its innovations (no truth used).
         objective: for a study, ``"montecarlo"`` (the loss averaged over minibatches of simulated runs) or
@@ -769,7 +780,7 @@ def _fit(
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     objective, n, take = recorded_objective(
-        obs, bound, trials, hold=hold, dtype=dt_, step_remat=True if step_remat is None else step_remat
+        obs, bound, trials, hold=hold, dtype=dt_, step_remat=bool(step_remat), checkpoint=checkpoint
     )
     val_batch = val_objective = None
     if val_trials:
