@@ -10,6 +10,7 @@ Usage:
   python research/broad_oof_tuning.py --observers vqf madgwick mahony [--steps 40] [--folds-dir DIR] [--diagonal]
   python research/broad_oof_tuning.py --observers robust [--freeze mag_delay]
 
+``--all`` also fits on every trial with the same recipe (``<tag>_broad_all.json``: what would ship).
 ``--diagonal`` learns the SPD gains (e.g. the MEKF's noise covariances) as diagonal matrices. ``--freeze`` keeps
 the named gains at their defaults (gains files ``<name>_freeze-<gains>_broad_fold<k>``).
 
@@ -45,6 +46,9 @@ def main(argv=None) -> int:
         help="learn SPD gains (e.g. noise covariances) as diagonal matrices; gains files <name>_diag_broad_fold<k>",
     )
     ap.add_argument("--freeze", nargs="+", default=[], help="gains kept at their defaults")
+    ap.add_argument(
+        "--all", action="store_true", help="also fit on every trial (the same recipe): <tag>_broad_all.json, to ship"
+    )
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
 
@@ -110,6 +114,24 @@ def main(argv=None) -> int:
             test = [trials[n] for n in names if n not in train]
             sc = jaxatt.broad_score(name, gainsfile.read_params(path, name, dtype=jnp.float64), test)
             tuned.update(sc.trials)
+        if args.all:
+            path = folds_dir / f"{tag}_broad_all.json"
+            t0 = time.perf_counter()
+            if args.retrain or not path.exists():
+                print(f"{name}: fitting on all {len(names)} trials -> {path}", flush=True)
+                jaxatt.fit(
+                    name,
+                    start,
+                    [trials[n] for n in names],
+                    steps=args.steps,
+                    lr=args.lr,
+                    dtype="float32",
+                    transforms=diag if args.diagonal else None,
+                    freeze=tuple(args.freeze),
+                    out=str(path),
+                    overwrite=True,
+                )
+            fits.append({"fold": "all", "train": names, "gains": str(path), "fit_wall_s": time.perf_counter() - t0})
         rows = {
             "default": {n: s._asdict() for n, s in default.trials.items()},
             "tuned_oof": {n: s._asdict() for n, s in tuned.items()},
