@@ -5,7 +5,8 @@ Use it through the front door: ``jaxatt.filter(name_or_observer, gyr, acc, mag, 
 function underneath (docs: ``docs/offline.md``).
 
 The causal observer runs twice over the recording, unchanged: forward, and over the time-reversed recording
-(:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers); the two
+(:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers; a
+``mag_delay`` param negated, :func:`reversed_params`); the two
 estimates of each sample are fused by a weighted geodesic average whose weights come from an uncertainty model
 driven by the observer's own gates (:func:`uncertainty`, :func:`fuse`). Every part is pure JAX: ``jit``, ``vmap``
 over padded trials, ``grad`` through both passes with respect to the observer's params and the fusion params.
@@ -68,6 +69,7 @@ __all__ = [
     "trust_of",
     "reverse_indices",
     "reverse_item",
+    "reversed_params",
     "uncertainty",
     "fuse",
     "fuse_inclination",
@@ -435,6 +437,15 @@ class Passes(NamedTuple):
     seed_backward: Any = None
 
 
+def reversed_params(params):
+    """The params of the backward pass: the same, but a delay of the magnetometer behind the gyro (a params field
+    ``mag_delay``, s, as the robust AHRS's) changes sign, since in reversed time the field arrives that much
+    *before* the rate."""
+    if hasattr(params, "_replace") and hasattr(params, "mag_delay"):
+        return params._replace(mag_delay=-params.mag_delay)
+    return params
+
+
 def passes_fn(
     observer,
     n_steps: int,
@@ -464,7 +475,7 @@ def passes_fn(
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None}
         rev = reverse_item(item, lengths, hold)
         fwd = run(None, params, item).records
-        bwd = run(None, params, rev).records
+        bwd = run(None, reversed_params(params), rev).records
         b_fwd = b_bwd = None
         if seed_bias:
             if "bias" not in fwd:
@@ -475,7 +486,7 @@ def passes_fn(
             item = {**item, "samples": s._replace(gyr=s.gyr - b_fwd[:, None, :].astype(s.gyr.dtype))}
             rev = reverse_item({**item, "samples": s}, lengths, hold, bias=b_bwd)
             fwd = run(None, params, item).records
-            bwd = run(None, params, rev).records
+            bwd = run(None, reversed_params(params), rev).records
         n = fwd["q"].shape[1]
         meas = jax.vmap(lambda length: reverse_indices(n, length, hold)[0])(lengths)
         dtype = fwd["q"].dtype

@@ -389,7 +389,7 @@ def test_padding_alignment_and_differentiable_batch_metric():
     # checkpointed segments (the fitter's default on trials) and per-step remat: the same value and gradient
     for kw in ({"checkpoint": 100}, {"checkpoint": 100, "step_remat": True}):
         seg = broad.metric_fn(obs, trials, hold="next", dtype=jnp.float64, **kw)
-        v2, g2 = jax.jit(jax.value_and_grad(lambda q: jnp.mean(seg(q)["total_rmse_deg"])))(p)
+        v2, g2 = jax.jit(jax.value_and_grad(lambda q, f=seg: jnp.mean(f(q)["total_rmse_deg"])))(p)
         assert float(v2) == pytest.approx(float(value_and_grad(p)[0][0]), rel=1e-13), kw
         np.testing.assert_allclose([float(g2.kp), float(g2.ki)], [float(g.kp), float(g.ki)], rtol=1e-11, err_msg=kw)
 
