@@ -304,3 +304,12 @@ def test_broad_trial_with_shipped_gains():
     # VQF online: 7.67 and 0.73 deg; ahrs Madgwick (beta = 0.12): far above
     assert res["32_disturbed_attached_magnet_1cm"] < 2.5, res
     assert res["14_undisturbed_slow_translation_with_breaks_B"] < 1.2, res
+
+
+def test_check_params_names_a_bad_magnetometer_delay():
+    import pytest
+
+    ra.check_params(ra.default_params(mag_delay=-0.01))  # a magnetometer ahead of the gyro is allowed
+    for bad in (float("nan"), 2.0):
+        with pytest.raises(ValueError, match="mag_delay"):
+            ra.check_params(ra.default_params(mag_delay=bad))
