@@ -83,11 +83,12 @@ def main(argv=None) -> int:
         start = entry.default_params(jnp.float32)  # untuned: a shipped gains file may have seen every trial
         default = jaxatt.broad_score(name, entry.default_params(jnp.float64), list(trials.values()))
         tuned, fits = {}, []
-        for k, train in enumerate(folds, start=1):
-            path = folds_dir / f"{tag}_broad_fold{k}.json"
+
+        def fit_once(path, train, label, name=name, start=start, diag=diag):
+            """Fit on ``train`` into ``path`` (unless it exists and --retrain is off); the wall time (s)."""
             t0 = time.perf_counter()
             if args.retrain or not path.exists():
-                print(f"{name}: fitting on fold {k} ({len(train)} trials) -> {path}", flush=True)
+                print(f"{name}: fitting on {label} ({len(train)} trials) -> {path}", flush=True)
                 jaxatt.fit(
                     name,
                     start,
@@ -100,13 +101,18 @@ def main(argv=None) -> int:
                     out=str(path),
                     overwrite=True,
                 )
+            return time.perf_counter() - t0
+
+        for k, train in enumerate(folds, start=1):
+            path = folds_dir / f"{tag}_broad_fold{k}.json"
+            wall = fit_once(path, train, f"fold {k}")
             payload = gainsfile.read(path)
             fits.append(
                 {
                     "fold": k,
                     "train": train,
                     "gains": str(path),
-                    "fit_wall_s": time.perf_counter() - t0,
+                    "fit_wall_s": wall,
                     "status": payload.get("status"),
                     "gains_values": payload.get("gains"),
                 }
@@ -116,22 +122,8 @@ def main(argv=None) -> int:
             tuned.update(sc.trials)
         if args.all:
             path = folds_dir / f"{tag}_broad_all.json"
-            t0 = time.perf_counter()
-            if args.retrain or not path.exists():
-                print(f"{name}: fitting on all {len(names)} trials -> {path}", flush=True)
-                jaxatt.fit(
-                    name,
-                    start,
-                    [trials[n] for n in names],
-                    steps=args.steps,
-                    lr=args.lr,
-                    dtype="float32",
-                    transforms=diag if args.diagonal else None,
-                    freeze=tuple(args.freeze),
-                    out=str(path),
-                    overwrite=True,
-                )
-            fits.append({"fold": "all", "train": names, "gains": str(path), "fit_wall_s": time.perf_counter() - t0})
+            wall = fit_once(path, names, "all trials")
+            fits.append({"fold": "all", "train": names, "gains": str(path), "fit_wall_s": wall})
         rows = {
             "default": {n: s._asdict() for n, s in default.trials.items()},
             "tuned_oof": {n: s._asdict() for n, s in tuned.items()},
