@@ -145,7 +145,11 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
     if hasattr(observer, "init") and hasattr(observer, "step"):
         return resolve_observer(
             Observer(
-                observer.init, observer.step, getattr(observer, "name", "observer"), getattr(observer, "output", None)
+                observer.init,
+                observer.step,
+                getattr(observer, "name", "observer"),
+                getattr(observer, "output", None),
+                getattr(observer, "time_reversed", None),
             ),
             params,
             dtype=dtype,

@@ -6,7 +6,7 @@ function underneath (docs: ``docs/offline.md``).
 
 The causal observer runs twice over the recording, unchanged: forward, and over the time-reversed recording
 (:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers; a
-``mag_delay`` param negated, :func:`reversed_params`); the two
+params as the observer declares for reversed time, :func:`reversed_params`); the two
 estimates of each sample are fused by a weighted geodesic average whose weights come from an uncertainty model
 driven by the observer's own gates (:func:`uncertainty`, :func:`fuse`). Every part is pure JAX: ``jit``, ``vmap``
 over padded trials, ``grad`` through both passes with respect to the observer's params and the fusion params.
@@ -437,13 +437,11 @@ class Passes(NamedTuple):
     seed_backward: Any = None
 
 
-def reversed_params(params):
-    """The params of the backward pass: the same, but a delay of the magnetometer behind the gyro (a params field
-    ``mag_delay``, s, as the robust AHRS's) changes sign, since in reversed time the field arrives that much
-    *before* the rate."""
-    if hasattr(params, "_replace") and hasattr(params, "mag_delay"):
-        return params._replace(mag_delay=-params.mag_delay)
-    return params
+def reversed_params(observer, params):
+    """The params of the backward pass: ``observer.time_reversed(params)`` where the observer declares how its
+    params change when time runs backwards (the robust AHRS: its magnetometer delay changes sign, since in
+    reversed time the field arrives that much *before* the rate), else ``params`` unchanged."""
+    return params if observer.time_reversed is None else observer.time_reversed(params)
 
 
 def passes_fn(
@@ -475,7 +473,7 @@ def passes_fn(
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None}
         rev = reverse_item(item, lengths, hold)
         fwd = run(None, params, item).records
-        bwd = run(None, reversed_params(params), rev).records
+        bwd = run(None, reversed_params(observer, params), rev).records
         b_fwd = b_bwd = None
         if seed_bias:
             if "bias" not in fwd:
@@ -486,7 +484,7 @@ def passes_fn(
             item = {**item, "samples": s._replace(gyr=s.gyr - b_fwd[:, None, :].astype(s.gyr.dtype))}
             rev = reverse_item({**item, "samples": s}, lengths, hold, bias=b_bwd)
             fwd = run(None, params, item).records
-            bwd = run(None, reversed_params(params), rev).records
+            bwd = run(None, reversed_params(observer, params), rev).records
         n = fwd["q"].shape[1]
         meas = jax.vmap(lambda length: reverse_indices(n, length, hold)[0])(lengths)
         dtype = fwd["q"].dtype

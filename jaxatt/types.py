@@ -91,6 +91,10 @@ class Observer(NamedTuple):
     * ``output(params, state) -> out`` (optional): the estimate held by a state, with the structure ``step``
       returns; gives estimate 0 (``init``'s). Without it the state's own ``q`` or ``r`` field is used.
     * ``name``: a label for messages and files.
+    * ``time_reversed(params) -> params`` (optional): the params with which the same observer runs on the
+      time-reversed recording (the backward pass of the offline mode, :mod:`jaxatt.smoothing`), for params that
+      change meaning when time runs backwards (a delay of one sensor behind another changes sign). Without it the
+      backward pass uses the params unchanged.
 
     Gains live in the ``params`` pytree passed to every call, never in the closure, so ``jax.grad`` over gains
     and ``jax.vmap`` over seeds or gain grids need nothing more.
@@ -100,3 +104,4 @@ class Observer(NamedTuple):
     step: Callable[[Any, Any, Any, Any], tuple]
     name: str = "observer"
     output: Optional[Callable[[Any, Any], Any]] = None
+    time_reversed: Optional[Callable[[Any], Any]] = None

@@ -195,15 +195,20 @@ POSITIVE = tuple(k for k in ra.TUNABLE if k != "mag_delay")
 
 def test_offline_mode_turns_the_magnetometer_delay_the_other_way_in_reverse_time():
     """Offline (forward-backward) on the late-magnetometer steady turn: in reversed time the field arrives
-    ``delay`` s *before* the rate, so the backward pass runs with -mag_delay (``smoothing.reversed_params``) and
-    the fused estimate is as exact as the forward one; with the same sign both ways it would be 2 rate delay off."""
+    ``delay`` s *before* the rate, so the backward pass runs with -mag_delay (the observer's ``time_reversed``,
+    applied by ``smoothing.reversed_params``; an observer without one keeps its params) and the fused estimate
+    is as exact as the forward one; with the same sign both ways it would be 2 rate delay off."""
     import jaxatt
     from jaxatt import smoothing
 
     rate, delay, dt = 1.5, 0.02, 0.01
     q, gyr, acc, mag = steady_turn(rate, delay, dt)
     p = ra.default_params(tau_mag=3.0, mag_delay=delay)
-    assert float(smoothing.reversed_params(p).mag_delay) == -delay
+    from jaxatt.observers import registry
+
+    for obs in (ra.make_observer(), registry.recorded_observer("robust")):
+        assert float(smoothing.reversed_params(obs, p).mag_delay) == -delay
+    assert smoothing.reversed_params(registry.recorded_observer("mahony"), p) is p
     est = jaxatt.filter("robust", gyr, acc, mag, dt=dt, params=p, offline=True)
     middle = slice(int(20 / dt), int(40 / dt))  # both passes converged
     assert angle_deg(est.quat[middle], q[middle]).max() < 0.005

@@ -227,7 +227,7 @@ def _wrap(base: Observer, setup: Callable, fields: Tuple[str, ...], name: str) -
 
     if base.output is None:
         raise ValueError(f"observer {name!r} needs an output(params, state) function to be set up for recorded data")
-    return Observer(init, step, name, output)
+    return Observer(init, step, name, output, base.time_reversed)  # same params type: same time reversal
 
 
 _WRAPPED: Dict[str, Observer] = {}

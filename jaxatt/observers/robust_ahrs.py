@@ -713,7 +713,13 @@ def _output(p: Params, s: State) -> Out:
     )
 
 
-_OBSERVER = Observer(_init, _step, "robust_ahrs", _output)
+def _time_reversed(p: Params) -> Params:
+    """The params on the time-reversed recording (offline mode's backward pass): the magnetometer, ``mag_delay``
+    s behind the gyro, is that much *ahead* of it when time runs backwards."""
+    return p._replace(mag_delay=-p.mag_delay)
+
+
+_OBSERVER = Observer(_init, _step, "robust_ahrs", _output, _time_reversed)
 
 
 def make_observer() -> Observer:
