@@ -12,7 +12,10 @@ Usage:
 
 ``--all`` also fits on every trial with the same recipe (``<tag>_broad_all.json``: what would ship).
 ``--diagonal`` learns the SPD gains (e.g. the MEKF's noise covariances) as diagonal matrices. ``--freeze`` keeps
-the named gains at their defaults (gains files ``<name>_freeze-<gains>_broad_fold<k>``).
+the named gains at their defaults (gains files ``<name>_freeze-<gains>_broad_fold<k>``). ``--delay-start FILE``
+(robust AHRS; FILE written by research/broad_sensor_delays.py) starts ``mag_delay`` of each fit at the median
+measured delay of the magnetometer behind the gyro over that fit's *training* trials (files
+``<tag>_delaystart_broad_fold<k>``).
 
 Writes research/results/broad-oof-tuning-<host>-<UTC>.json (per trial and per group, default and tuned) and
 prints the group means.
@@ -21,6 +24,7 @@ prints the group means.
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import sys
 import time
@@ -49,6 +53,11 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--all", action="store_true", help="also fit on every trial (the same recipe): <tag>_broad_all.json, to ship"
     )
+    ap.add_argument(
+        "--delay-start",
+        default=None,
+        help="results of broad_sensor_delays.py: start mag_delay at the training trials' median measured delay",
+    )
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
 
@@ -56,6 +65,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
+    import numpy as np
 
     import jaxatt
     from jaxatt.api import TrialScore, group_means
@@ -72,6 +82,10 @@ def main(argv=None) -> int:
     from jaxatt.fitting import parametrize
     from jaxatt.observers import registry
 
+    delays = None
+    if args.delay_start:
+        measured = json.loads(pathlib.Path(args.delay_start).read_text())["trials"]
+        delays = {n: float(v["mag_behind_gyr_ms"]) for n, v in measured.items()}
     for name in args.observers:
         entry = registry.get(name)
         diag = {
@@ -80,6 +94,8 @@ def main(argv=None) -> int:
         tag = f"{name}_diag" if args.diagonal else name
         if args.freeze:
             tag += "_freeze-" + "-".join(args.freeze)
+        if args.delay_start:
+            tag += "_delaystart"
         start = entry.default_params(jnp.float32)  # untuned: a shipped gains file may have seen every trial
         default = jaxatt.broad_score(name, entry.default_params(jnp.float64), list(trials.values()))
         tuned, fits = {}, []
@@ -89,6 +105,9 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             if args.retrain or not path.exists():
                 print(f"{name}: fitting on {label} ({len(train)} trials) -> {path}", flush=True)
+                if delays is not None:  # the training trials' own measured delay: nothing from the test fold
+                    start = start._replace(mag_delay=jnp.float32(np.median([delays[n] for n in train]) / 1e3))
+                    print(f"  mag_delay starts at {1e3 * float(start.mag_delay):.2f} ms", flush=True)
                 jaxatt.fit(
                     name,
                     start,
