@@ -5,8 +5,8 @@ Use it through the front door: ``jaxatt.filter(name_or_observer, gyr, acc, mag, 
 function underneath (docs: ``docs/offline.md``).
 
 The causal observer runs twice over the recording, unchanged: forward, and over the time-reversed recording
-(:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers; a
-params as the observer declares for reversed time, :func:`reversed_params`); the two
+(:func:`reverse_item`: samples in reverse order, gyro negated and re-aligned to the intervals it covers; the
+params as the observer declares them for reversed time, :func:`reversed_params`); the two
 estimates of each sample are fused by a weighted geodesic average whose weights come from an uncertainty model
 driven by the observer's own gates (:func:`uncertainty`, :func:`fuse`). Every part is pure JAX: ``jit``, ``vmap``
 over padded trials, ``grad`` through both passes with respect to the observer's params and the fusion params.
