@@ -85,6 +85,17 @@ def _count(minimum: int):
     return parse
 
 
+def _seed(s: str) -> int:
+    """A PRNG seed: an integer that fits in 64 bits (what ``jax.random.PRNGKey`` takes)."""
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
+    if not -(2**63) <= v < 2**63:
+        raise argparse.ArgumentTypeError(f"must fit in 64 bits (|seed| < 2^63), got {s}")
+    return v
+
+
 def _latitude(s: str) -> float:
     v = _number(s, low=-np.inf, strict=False, what="finite")
     if not -90.0 <= v <= 90.0:
@@ -98,7 +109,7 @@ def _latitude(s: str) -> float:
 def _mc_flags(p: argparse.ArgumentParser, *, study_flags: bool = True):
     p.add_argument("--runs", type=_count(1), default=100, help="Monte Carlo runs (default 100)")
     p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default: the paper's)")
-    p.add_argument("--seed", type=int, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
+    p.add_argument("--seed", type=_seed, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
     p.add_argument(
         "--hold",
         choices=["zoh", "linear"],
@@ -239,7 +250,7 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--train-runs", type=_count(1), default=32, help="training seeds")
     tp.add_argument("--val-runs", type=_count(0), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
-    tp.add_argument("--seed", type=int, default=0)
+    tp.add_argument("--seed", type=_seed, default=0)
     tp.add_argument("--lr", type=_positive, default=None, help="step size (default 0.05 for adam, 1 for lbfgs)")
     tp.add_argument(
         "--refine-schedule",
@@ -271,7 +282,7 @@ def _parser() -> argparse.ArgumentParser:
     vp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
     vp.add_argument("--gains", default=None, help="gains file (default: the paper's gains)")
     vp.add_argument("--runs", type=_count(1), default=100)
-    vp.add_argument("--seed", type=int, default=1)
+    vp.add_argument("--seed", type=_seed, default=1)
     vp.add_argument("--duration", type=_positive, default=None)
     vp.add_argument("--json", default=None)
     _run_flags(vp)
@@ -830,7 +841,7 @@ def _excitation(args) -> int:
     from . import analysis, frames, io
 
     io.check_output_path(args.json, "--json")
-    io.check_output_path(args.plot, "--plot")
+    io.check_figure_path(args.plot, "--plot")
     if args.scenario:
         from .progress import Heartbeat
         from .sim import references

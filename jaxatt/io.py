@@ -9,6 +9,7 @@ import math
 import os
 import platform
 import socket
+import stat
 import subprocess
 import sys
 import tempfile
@@ -51,11 +52,17 @@ def to_jsonable(o: Any):
 def check_output_path(path, flag: str = "output") -> Optional[Path]:
     """Check, before computing, that ``path`` can be written: its folder exists or can be created and is
     writable, and ``path`` is not a folder. Returns the Path (None for None). ValueError naming ``flag``."""
-    if path is None or path == "":
+    if path is None:
         return None
+    if not str(path).strip():
+        raise ValueError(f"{flag}: empty path")
     p = Path(path)
     if p.exists() and p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder, expected a file name")
+    if _is_special(p):  # /dev/null, a FIFO: written in place (write_atomic), never replaced
+        if not os.access(p, os.W_OK):
+            raise ValueError(f"{flag} {path}: is not writable")
+        return p
     parent = p.parent if str(p.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
@@ -74,6 +81,21 @@ def check_output_path(path, flag: str = "output") -> Optional[Path]:
     return p
 
 
+def check_figure_path(path, flag: str = "--plot") -> Optional[Path]:
+    """:func:`check_output_path` for a figure, and its extension is a format matplotlib writes (png, pdf, svg,
+    ...), so that a run is not computed for a figure that cannot be saved. ValueError naming ``flag``."""
+    p = check_output_path(path, flag)
+    if p is None or _is_special(p):
+        return p
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    ext = p.suffix.lower().lstrip(".")
+    if ext not in formats:
+        raise ValueError(f"{flag} {path}: unknown figure format {ext!r}; use one of {', '.join(sorted(formats))}")
+    return p
+
+
 def is_main_process() -> bool:
     """False only in the processes other than process 0 of a multi-process JAX run (``jax.distributed``), which
     write no files: every process computes the same results, process 0 saves them. True in a single process (and
@@ -87,6 +109,15 @@ def is_main_process() -> bool:
     return jax.process_index() == 0
 
 
+def _is_special(p: Path) -> bool:
+    """True for an existing path that is neither a regular file nor a folder (a character device, a FIFO)."""
+    try:
+        mode = os.stat(p).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
 def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> None:
     """Write a file atomically: ``write(file_object)`` fills a temporary file in the same folder, which is synced
     and renamed onto ``path``; an interrupted write never leaves a broken or partial file (nor a stray temporary).
@@ -94,6 +125,10 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
     if not is_main_process():
         return
     p = Path(path)
+    if _is_special(p):  # a device or FIFO (/dev/null): write into it; renaming over it would replace the device
+        with open(p, "wb" if binary else "w") as f:
+            write(f)
+        return
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(p.parent))
     try:

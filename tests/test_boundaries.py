@@ -124,6 +124,7 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/missing.csv", "--out", "{d}/keep.csv"], r"--log .*missing\.csv: not found"),
     (["filter", "--log", "{d}/folder", "--out", "{d}/keep.csv"], r"folder"),
     (["filter", "--log", "{d}/log.csv", "--out", "{d}/folder"], r"--out .*folder: is a folder"),
+    (["filter", "--log", "{d}/log.csv", "--out", " "], r"--out: empty path"),
     (["filter", "--log", "{d}/log.csv", "--out", "/proc/est.csv"], r"--out /proc/est\.csv: cannot write"),
     (["filter", "--log", "{d}/log.csv", "--observer", "nope", "--out", "{d}/keep.csv"], r"unknown observer 'nope'"),
     (["filter", "--log", "{d}/log.csv", "--observer", "nomodule:X", "--out", "{d}/keep.csv"], r"cannot import"),
@@ -207,6 +208,15 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--json", "/proc/x.json"], r"--json /proc/x\.json"),
     (["excitation", "--scenario", "rotating", "--plot", "{d}/folder"], r"--plot .*folder"),
     (["excitation", "--scenario", "nope"], r"argument --scenario"),
+    (
+        ["excitation", "--scenario", "rotating", "--plot", "{d}/fig.txt"],
+        r"--plot .*fig\.txt: unknown figure format 'txt'",
+    ),
+    # seeds, empty paths, figure formats: refused before any work
+    (["reproduce", "batista-so3", *MC, "--seed", "99999999999999999999"], r"argument --seed: must fit in 64 bits"),
+    (["tune", "--experiment", "batista-so3", "--seed", "1.5"], r"argument --seed: must be an integer"),
+    (["reproduce", "batista-so3", *MC, "--json", ""], r"--json: empty path"),
+    (["reproduce", "batista-so3", *MC, "--plot", "{d}/fig.txt"], r"--plot .*fig\.txt: unknown figure format"),
 ]
 
 
@@ -248,6 +258,28 @@ def test_non_finite_result_exits_1_saying_where(files, capsys, argv, match):
     assert rc == 1, (rc, err)
     assert len(err) == 1 and err[0].startswith("jaxatt: error: non-finite result"), err
     assert re.search(match, err[0]), err[0]
+
+
+def test_an_output_that_is_a_device_or_fifo_is_written_into_not_replaced(tmp_path):
+    """``--out /dev/null`` must keep /dev/null a device (as root a rename onto it would replace it with a file):
+    a path that exists and is neither a file nor a folder passes the output check and is written in place.
+    Checked on a FIFO (same code path, harmless if it regressed)."""
+    import stat
+    import threading
+
+    from jaxatt import io
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    assert io.check_output_path(str(fifo), "--out") == fifo
+    io.write_json(fifo, {"a": 1})
+    reader.join(timeout=10)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    assert json.loads(got[0]) == {"a": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]  # no temporary left behind
 
 
 def test_broad_trial_without_ground_truth_is_said_not_failed(files, capsys):

@@ -166,6 +166,28 @@ def test_metric_simple_properties():
     assert broad.broad_errors(qe, qt, mov)["inclination_rmse_deg"] > 1.0
 
 
+def test_a_diverged_estimate_never_scores_zero():
+    """NaN or infinite estimates on scored samples give a NaN metric (the numpy reference, broad_errors, agrees),
+    never 0: a diverged filter (e.g. Madgwick with beta = 1e30 in float32) must not look perfect to
+    jaxatt.broad_score or to the fitter's loss."""
+    rng = np.random.default_rng(3)
+    qt = random_quats(rng, 40, 2.0)
+    mov = np.ones(40, bool)
+    for bad in (np.nan, np.inf):
+        qe = qt.copy()
+        qe[5:] = bad
+        ref = broad.broad_errors(qe, qt, mov)
+        rj = jax.jit(broad.broad_errors_jax)(jnp.asarray(qe), jnp.asarray(qt), jnp.asarray(mov))
+        for k in broad.METRICS:
+            assert np.isnan(ref[k]) and np.isnan(float(rj[k])), (bad, k, ref[k], float(rj[k]))
+    # a NaN estimate outside the movement mask is not scored
+    qe = qt.copy()
+    qe[:5] = np.nan
+    mov[:5] = False
+    rj = jax.jit(broad.broad_errors_jax)(jnp.asarray(qe), jnp.asarray(qt), jnp.asarray(mov))
+    assert all(float(rj[k]) < 1e-6 for k in broad.METRICS)
+
+
 def test_metric_jax_gradient_safe_with_nan_truth():
     rng = np.random.default_rng(2)
     qt = random_quats(rng, 30)

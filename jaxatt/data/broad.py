@@ -342,17 +342,23 @@ def broad_errors(quat_est, quat_true, movement) -> Dict[str, float]:
 
     Returns dict(total_rmse_deg, heading_rmse_deg, inclination_rmse_deg): for each error e_k (rad, see
     :func:`error_angles`), rad2deg(sqrt(nanmean(e_k^2 over k in movement))) - the same numbers as BROAD's
-    ``calculateRMSE``.
+    ``calculateRMSE``. One departure: a non-finite estimate on a scored sample (movement, finite truth) makes
+    every metric NaN, where BROAD's nanmean would skip the sample (a diverged filter must not score well).
     """
     movement = np.asarray(movement).astype(bool)
     total, heading, incl = error_angles(quat_est, quat_true)
+    scored = movement & np.all(np.isfinite(np.asarray(quat_true, float)), axis=-1)
+    if not np.all(np.isfinite(np.asarray(quat_est, float))[scored]):
+        nan = float("nan")
+        return dict(total_rmse_deg=nan, heading_rmse_deg=nan, inclination_rmse_deg=nan)
     rmse = lambda e: float(np.rad2deg(np.sqrt(np.nanmean(e[movement] ** 2))))  # noqa: E731
     return dict(total_rmse_deg=rmse(total), heading_rmse_deg=rmse(heading), inclination_rmse_deg=rmse(incl))
 
 
 def _safe_sqrt(x):
+    """sqrt(x) with a finite gradient at x <= 0 (0 there); NaN stays NaN, so a diverged estimate never scores 0."""
     ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), jnp.where(jnp.isnan(x), x, 0.0))
 
 
 def error_angles_jax(quat_est, quat_true):

@@ -258,7 +258,7 @@ def reproduce(
     if resume and not json_path:
         raise ValueError("--resume needs --json (the finished runs are saved beside it)")
     io.check_output_path(json_path, "--json")
-    io.check_output_path(plot_path, "--plot")
+    io.check_figure_path(plot_path, "--plot")
     log = _log(quiet)
     obs = dict(observers) if observers is not None else study.observers(cfg)
     for _, (_, p) in obs.items():
