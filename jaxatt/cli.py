@@ -72,12 +72,16 @@ def _nonneg(s: str) -> float:
     return _number(s, low=0.0, strict=False, what="non-negative")
 
 
+def _integer(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
+
+
 def _count(minimum: int):
     def parse(s: str) -> int:
-        try:
-            v = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
+        v = _integer(s)
         if v < minimum:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {s}")
         return v
@@ -87,10 +91,7 @@ def _count(minimum: int):
 
 def _seed(s: str) -> int:
     """A PRNG seed: an integer that fits in 64 bits (what ``jax.random.PRNGKey`` takes)."""
-    try:
-        v = int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
+    v = _integer(s)
     if not -(2**63) <= v < 2**63:
         raise argparse.ArgumentTypeError(f"must fit in 64 bits (|seed| < 2^63), got {s}")
     return v

@@ -23,6 +23,7 @@ __all__ = [
     "write_json",
     "read_json",
     "check_output_path",
+    "check_figure_path",
     "environment",
     "summarise",
     "to_jsonable",
