@@ -218,6 +218,9 @@ def excitation(
     w = float(window)
     if not (math.isfinite(w) and w > 0):
         raise ValueError(f"window must be a finite positive number of seconds, got {window}")
+    step = float(np.median(np.diff(t)))
+    if w < step:
+        raise ValueError(f"window {w:g} s is shorter than the sample interval ({step:g} s)")
     stride = int(stride)
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
@@ -326,8 +329,12 @@ def excitation_of_scenario(
 ) -> Excitation:
     """Excitation of a :class:`jaxatt.sim.references.VectorScenario` from its noise-free simulated log
     (Omega exact, no bias)."""
+    from .montecarlo import check_dt, check_duration
     from .sim import references
 
+    duration, dt = check_duration(duration), check_dt(dt)
+    if dt >= duration:
+        raise ValueError(f"dt ({dt:g} s) must be shorter than the duration ({duration:g} s)")
     clean = scenario._replace(
         gyro_bias=scenario.gyro_bias * 0,
         gyro_noise_std=scenario.gyro_noise_std * 0,

@@ -49,6 +49,8 @@ __all__ = [
 ]
 
 ObserverLike = Union[str, Observer, registry.Entry]
+#: Largest | |q| - 1 | accepted in an estimate of :func:`filter` (registered observers stay within 1e-6 in float32).
+UNIT_TOLERANCE = 1e-3
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -95,6 +97,29 @@ def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndar
     return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
 
 
+def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
+    """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
+    widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a sample
+    interval above 1 s (ms timestamps?), a sensor with no finite reading."""
+    with np.errstate(invalid="ignore"):
+        notes = []
+        for name, a in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+            if a is not None and not np.isfinite(a).any():
+                notes.append(f"{name} has no finite reading (every row NaN)")
+        g = np.nanmax(np.abs(gyr)) if np.isfinite(gyr).any() else 0.0
+        if g > 35.0:
+            notes.append(f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s")
+        if acc is not None and np.isfinite(acc).any():
+            acc_norm = float(np.nanmedian(np.linalg.norm(acc, axis=-1)))
+            if 0.5 < acc_norm < 2.0:
+                notes.append(f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest)")
+        step = float(np.median(np.diff(ts)))
+        if step > 1.0:
+            notes.append(f"the sample interval is {step:.4g} s: are the timestamps in ms? jaxatt expects s")
+    for note in notes:
+        warnings.warn(note, stacklevel=3)
+
+
 def _times(t, dt, n: int):
     """(t (T,), per_step) from timestamps or a constant dt; ValueError naming the argument."""
     if t is not None and dt is not None:
@@ -133,6 +158,15 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
             params = gainsfile.read_params(params, entry, dtype=dtype)
         elif isinstance(params, dict):
             params = _override(entry.params(dtype=dtype), params, entry.name)
+        else:
+            default = entry.params(dtype=dtype)
+            if type(params) is not type(default):
+                raise ValueError(
+                    f"params of {entry.name} must be its {type(default).__name__} "
+                    f"({', '.join(getattr(default, '_fields', ()))}), "
+                    f"a dict of some of those fields or a gains-file path, got {type(params).__name__}"
+                    + (f" ({', '.join(params._fields)})" if hasattr(params, "_fields") else "")
+                )
         if entry.check is not None:
             _check_concrete(entry.check, params)
         return obs, params, entry, entry.name
@@ -160,6 +194,16 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
     )
 
 
+def check_own_observer(observer: Observer, params, entry, dtype, hold: str, acc: bool = True, mag: bool = True):
+    """For an observer written by a user (``entry`` None): ValueError (one line) unless it keeps the engine's
+    contract (:func:`jaxatt.engine.check_observer`, shapes only), checked on a sample with the given sensors."""
+    if entry is not None:
+        return
+    z = jnp.zeros((3,), dtype)
+    sample0 = ImuSample(jnp.zeros((), dtype), z, z if acc else None, z if mag else None)
+    engine.check_observer(observer, params, sample0, 1.0, dtype, hold)
+
+
 def _override(base, gains: dict, name: str):
     """``base`` (a Params NamedTuple) with the fields named in ``gains`` replaced (ValueError for other names)."""
     unknown = sorted(set(gains) - set(base._fields))
@@ -167,7 +211,13 @@ def _override(base, gains: dict, name: str):
         raise ValueError(
             f"params of {name}: no field {', '.join(map(repr, unknown))}; fields: {', '.join(base._fields)}"
         )
-    return base._replace(**{k: np.asarray(v, dtype=np.asarray(getattr(base, k)).dtype) for k, v in gains.items()})
+    values = {}
+    for k, v in gains.items():
+        try:
+            values[k] = np.asarray(v, dtype=np.asarray(getattr(base, k)).dtype)
+        except (TypeError, ValueError):
+            raise ValueError(f"params of {name}: field {k!r} must be a number, got {v!r}") from None
+    return base._replace(**values)
 
 
 def _check_concrete(check, params):
@@ -281,6 +331,7 @@ def filter(
     acc_a = _vectors("acc", acc, n, False)
     mag_a = _vectors("mag", mag, n, False)
     ts, per_step = _times(t, dt, n)
+    _warn_implausible(gyr_a, acc_a, mag_a, ts)
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     if entry is not None:
@@ -289,6 +340,7 @@ def filter(
             raise ValueError(f"observer {name!r} needs {' and '.join(missing)} (arrays of shape (T, 3))")
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
     cast = lambda a: None if a is None else jnp.asarray(a, dt_)  # noqa: E731
     samples = ImuSample(jnp.asarray(ts, dt_), cast(gyr_a), cast(acc_a), cast(mag_a))
     steps = np.diff(ts)
@@ -334,6 +386,14 @@ def filter(
         raise FloatingPointError(
             f"{name}: the estimate is first non-finite (or a zero quaternion) at sample {k} (t = {ts[k]:.6g} s), "
             f"{int(bad.sum())} of {len(bad)} estimates; check the inputs and gains"
+        )
+    norm = np.linalg.norm(q, axis=-1)
+    off = np.abs(norm - 1.0) > UNIT_TOLERANCE
+    if off.any():
+        k = int(np.argmax(off))
+        raise ValueError(
+            f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm {norm[k]:.6g}); "
+            "an observer's q must have norm 1 (normalise it in step) and its r must be a rotation matrix"
         )
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
@@ -430,6 +490,7 @@ def broad_score(
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    check_own_observer(obs, p, entry, dt_, hold)
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)
@@ -533,7 +594,15 @@ def monte_carlo(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    check_own_observer(obs, p, entry, dt_, hold)
+    from .sim.ahrs import AhrsScenario
+
     scn = scenario if scenario is not None else ahrs_scenario()
+    if not isinstance(scn, AhrsScenario):
+        raise ValueError(f"scenario must be an AHRS scenario (jaxatt.api.ahrs_scenario(...)), got {type(scn).__name__}")
+    duration = mc.check_duration(duration)
+    if window_start is not None and not isinstance(window_start, (int, float, np.integer, np.floating)):
+        raise ValueError(f"window_start must be a number of seconds, got {window_start!r}")
     ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
     if not 0.0 <= ws < duration:
         raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")

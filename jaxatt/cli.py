@@ -19,10 +19,13 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
+
+from .types import MAX_RUNS
 
 __all__ = ["main"]
 
@@ -79,11 +82,13 @@ def _integer(s: str) -> int:
         raise argparse.ArgumentTypeError(f"must be an integer, got {s!r}") from None
 
 
-def _count(minimum: int):
+def _count(minimum: int, maximum: Optional[int] = None):
     def parse(s: str) -> int:
         v = _integer(s)
         if v < minimum:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {s}")
+        if maximum is not None and v > maximum:
+            raise argparse.ArgumentTypeError(f"must be <= {maximum}, got {s}")
         return v
 
     return parse
@@ -108,7 +113,7 @@ def _latitude(s: str) -> float:
 # The parser
 # ------------------------------------------------------------------------------------------------------------
 def _mc_flags(p: argparse.ArgumentParser, *, study_flags: bool = True):
-    p.add_argument("--runs", type=_count(1), default=100, help="Monte Carlo runs (default 100)")
+    p.add_argument("--runs", type=_count(1, MAX_RUNS), default=100, help="Monte Carlo runs (default 100)")
     p.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s (default: the paper's)")
     p.add_argument("--seed", type=_seed, default=0, help="base seed; run k uses fold_in(PRNGKey(seed), k)")
     p.add_argument(
@@ -199,7 +204,12 @@ def _parser() -> argparse.ArgumentParser:
         help="forward-backward smoothing over the whole log (jaxatt.smoothing): q is the fused estimate, the "
         "columns backward_* and weight_* are added",
     )
-    fp.add_argument("--out", required=True, help="CSV of t, qw, qx, qy, qz and the observer's flags")
+    fp.add_argument(
+        "--out",
+        required=True,
+        help="CSV (.csv, .txt) of t, qw, qx, qy, qz and the observer's flags, or the same columns as arrays in "
+        "an NPZ (.npz)",
+    )
     _output_flags(fp)
 
     rp = sub.add_parser("reproduce", help="run a paper's simulation study and compare with its published numbers")
@@ -248,7 +258,7 @@ def _parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("tune", help="tune a study's gains by gradient descent through the Monte Carlo scan")
     tp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
     tp.add_argument("--steps", type=_count(0), default=100, help="optimiser steps")
-    tp.add_argument("--train-runs", type=_count(1), default=32, help="training seeds")
+    tp.add_argument("--train-runs", type=_count(1, MAX_RUNS), default=32, help="training seeds")
     tp.add_argument("--val-runs", type=_count(0), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=_seed, default=0)
@@ -282,7 +292,7 @@ def _parser() -> argparse.ArgumentParser:
     vp = sub.add_parser("evaluate", help="Monte Carlo of a study with a gains file (same JSON as reproduce)")
     vp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
     vp.add_argument("--gains", default=None, help="gains file (default: the paper's gains)")
-    vp.add_argument("--runs", type=_count(1), default=100)
+    vp.add_argument("--runs", type=_count(1, MAX_RUNS), default=100)
     vp.add_argument("--seed", type=_seed, default=1)
     vp.add_argument("--duration", type=_positive, default=None)
     vp.add_argument("--json", default=None)
@@ -751,6 +761,8 @@ def _import_attr(spec: str, flag: str):
     if ":" not in spec:
         raise UserError(f"{flag} {spec!r}: expected a registered name or module:attr")
     mod_name, attr = spec.split(":", 1)
+    if not mod_name.strip() or not attr.strip():
+        raise UserError(f"{flag} {spec!r}: expected module:attr, e.g. my_filters:OBSERVER (both parts named)")
     sys.path.insert(0, os.getcwd())
     try:
         mod = importlib.import_module(mod_name)
@@ -776,11 +788,16 @@ def _load_any_log(path: str):
     return logs.load_log(path), None
 
 
+#: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
+FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
+
+
 def _filter(args) -> int:
     from . import api, io
     from .observers import registry
 
-    out = io.check_output_path(args.out, "--out")
+    out = io.check_output_path(args.out, "--out", suffixes=FILTER_OUTPUTS)
+    assert out is not None  # --out is required
     if ":" in args.observer:
         observer = _import_attr(args.observer, "--observer")
         params = _import_attr(args.params, "--params") if args.params else None
@@ -821,13 +838,16 @@ def _filter(args) -> int:
             for i, ax in enumerate("xyz"):
                 cols.append(v[:, i].astype(float))
                 names.append(f"{k}_{ax}")
-    table = np.column_stack(cols)
+    if out.suffix.lower() == ".npz":
+        io.write_npz(out, dict(zip(names, cols)))
+    else:
+        table = np.column_stack(cols)
 
-    def write(f):
-        f.write(",".join(names) + "\n")
-        np.savetxt(f, table, delimiter=",", fmt="%.17g")
+        def write(f):
+            f.write(",".join(names) + "\n")
+            np.savetxt(f, table, delimiter=",", fmt="%.17g")
 
-    io.write_atomic(out, write)
+        io.write_atomic(out, write)
     print(
         f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
         f"with columns {', '.join(names)}"
@@ -860,6 +880,8 @@ def _excitation(args) -> int:
         fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
         if "mag" in fields and args.mag_ref is None:
             raise UserError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")
+        if args.mag_ref is not None and not np.any(np.asarray(args.mag_ref, float)):
+            raise UserError("--mag-ref: the magnetic reference must be a non-zero vector (its direction is used)")
         refs_ = [frames.up(args.frame)] if "acc" in fields else []
         if "mag" in fields:
             refs_.append(np.asarray(args.mag_ref, float))
@@ -967,6 +989,10 @@ def _on_sigint(signum, frame):
     raise KeyboardInterrupt
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"jaxatt: warning: {message}", file=sys.stderr)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -988,7 +1014,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         _IMPORTING.clear()
         if _INTERRUPTED:
             raise KeyboardInterrupt
-        return _COMMANDS[args.command](args)
+        with warnings.catch_warnings():  # warnings as one line each: "jaxatt: warning: ..."
+            warnings.showwarning = _show_warning
+            return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("jaxatt: interrupted (finished work is saved)", file=sys.stderr)
         return 130

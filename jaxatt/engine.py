@@ -52,6 +52,7 @@ __all__ = [
     "Result",
     "batch_fn",
     "initial_output",
+    "check_observer",
     "segment_length",
     "cast_floats",
     "check_hold",
@@ -93,7 +94,7 @@ def check_finite_params(params, name: str = "observer") -> None:
 def cast_floats(tree, dtype):
     """``tree`` with every floating leaf cast to ``dtype`` (others untouched; None leaves stay None)."""
     return jax.tree_util.tree_map(
-        lambda a: a.astype(dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree
+        lambda a: jnp.asarray(a).astype(dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree
     )
 
 
@@ -240,6 +241,61 @@ def estimate_q(out):
     """The sensor-to-navigation quaternion (..., 4), (w, x, y, z), of an observer output: ``out.q``, else from
     ``out.r`` (w >= 0)."""
     return _estimate(out, "q", "r", lambda r: so3.quat_canonical(so3.matrix_to_quat(r)))
+
+
+def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold: str = "next") -> None:
+    """ValueError (one line) unless ``observer`` keeps the contract the scan relies on, checked on shapes only
+    (``jax.eval_shape``, nothing is computed): ``step(params, state, sample, dt)`` (an :class:`Interval` of
+    samples for ``hold="linear"``) returns ``(state, output)``;
+    the new state has the structure, shapes and dtypes of ``init``'s (in ``obs_dtype``, as the engine casts it);
+    the output (and ``observer.output``'s, when given) is a NamedTuple or dict with a float estimate ``q`` of
+    shape (4,) (w, x, y, z) or ``r`` of shape (3, 3). The front door (:mod:`jaxatt.api`) calls it for observers
+    written by users; errors raised by their own code are theirs."""
+    name = observer.name
+    obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
+    p = cast_floats(params, obs_dtype)
+    u = Interval(sample0, sample0) if check_hold(hold) == "linear" else sample0
+
+    def init_and_step():
+        state = cast_floats(observer.init(p, sample0), obs_dtype)
+        extra = observer.output(p, state) if observer.output is not None else None
+        return state, observer.step(p, state, u, jnp.asarray(dt, obs_dtype)), extra
+
+    st, res, out0 = jax.eval_shape(init_and_step)
+    if not (isinstance(res, (tuple, list)) and not hasattr(res, "_fields") and len(res) == 2):
+        got = "None" if res is None else f"{type(res).__name__}"
+        raise ValueError(f"observer {name!r}: step must return a pair (state, output), got {got}")
+    new_state, out = res
+    before, tree_before = jax.tree_util.tree_flatten_with_path(st)
+    after, tree_after = jax.tree_util.tree_flatten_with_path(new_state)
+    if str(tree_before) != str(tree_after):
+        raise ValueError(
+            f"observer {name!r}: step must return a state with the structure init returns; init gave "
+            f"{tree_before}, step gave {tree_after}"
+        )
+    for (path, a), (_, b) in zip(before, after):
+        if a.shape != b.shape or a.dtype != b.dtype:
+            raise ValueError(
+                f"observer {name!r}: the state field {jax.tree_util.keystr(path) or '(state)'} is "
+                f"{a.dtype}{list(a.shape)} after init but {b.dtype}{list(b.shape)} after step (they must match)"
+            )
+    outputs = [("step", out)] + ([("output", out0)] if observer.output is not None else [])
+    for where, o in outputs:
+        if not (hasattr(o, "_fields") or isinstance(o, dict)):
+            got = "an array" if isinstance(o, jax.ShapeDtypeStruct) else type(o).__name__
+            raise ValueError(
+                f"observer {name!r}: {where} must return its output as a NamedTuple or dict with a field q "
+                f"(w, x, y, z) or r (3x3), got {got}"
+            )
+        q, r = _field(o, "q"), _field(o, "r")
+        if q is None and r is None:
+            raise ValueError(f"observer {name!r}: the output of {where} has neither a field q (w, x, y, z) nor r (3x3)")
+        field, v, shape = ("q", q, (4,)) if q is not None else ("r", r, (3, 3))
+        if tuple(v.shape) != shape or not jnp.issubdtype(v.dtype, jnp.floating):
+            raise ValueError(
+                f"observer {name!r}: the output field {field} of {where} must be a float array of shape {shape}, "
+                f"got {v.dtype}{list(v.shape)}"
+            )
 
 
 # ------------------------------------------------------------------------------------------------------------

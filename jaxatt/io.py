@@ -15,7 +15,7 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -50,9 +50,11 @@ def to_jsonable(o: Any):
     return a.tolist() if a.ndim else a.item()
 
 
-def check_output_path(path, flag: str = "output") -> Optional[Path]:
+def check_output_path(path, flag: str = "output", suffixes: Optional[Sequence[str]] = None) -> Optional[Path]:
     """Check, before computing, that ``path`` can be written: its folder exists or can be created and is
-    writable, and ``path`` is not a folder. Returns the Path (None for None). ValueError naming ``flag``."""
+    writable, and ``path`` is not a folder; with ``suffixes`` (such as (".csv", ".npz"), "" for none), that its
+    extension is one of them (a device or FIFO is exempt). Returns the Path (None for None). ValueError naming
+    ``flag``."""
     if path is None:
         return None
     if not str(path).strip():
@@ -60,6 +62,9 @@ def check_output_path(path, flag: str = "output") -> Optional[Path]:
     p = Path(path)
     if p.exists() and p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder, expected a file name")
+    if suffixes is not None and not _is_special(p) and p.suffix.lower() not in suffixes:
+        named = ", ".join(x for x in suffixes if x)
+        raise ValueError(f"{flag} {path}: unknown extension {p.suffix!r}; this writes {named}")
     if _is_special(p):  # /dev/null, a FIFO: written in place (write_atomic), never replaced
         if not os.access(p, os.W_OK):
             raise ValueError(f"{flag} {path}: is not writable")
@@ -169,7 +174,7 @@ def read_json(path, what: str = "file") -> dict:
     """Read a JSON file; ValueError naming the file on a missing, unreadable or malformed file."""
     p = Path(path)
     if not p.is_file():
-        raise ValueError(f"{what} {path}: not found")
+        raise ValueError(f"{what} {path}: " + ("is a folder, expected a file" if p.is_dir() else "not found"))
     try:
         with open(p) as f:
             d = json.load(f)

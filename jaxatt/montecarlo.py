@@ -27,7 +27,7 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .types import ImuSample, Observer
+from .types import MAX_RUNS, ImuSample, Observer
 
 __all__ = [
     "run",
@@ -53,6 +53,41 @@ def check_dt(dt) -> float:
     if not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
     return dt
+
+
+def check_duration(duration) -> float:
+    """``duration`` as a float: finite and > 0 seconds (ValueError otherwise)."""
+    try:
+        d = float(duration)
+    except (TypeError, ValueError):
+        raise ValueError(f"duration must be a number of seconds, got {duration!r}") from None
+    if not math.isfinite(d) or d <= 0:
+        raise ValueError(f"duration must be a finite positive number of seconds, got {duration}")
+    return d
+
+
+def check_count(name: str, value, minimum: int = 0, maximum: Optional[int] = None) -> int:
+    """``value`` as an int in [``minimum``, ``maximum``] (a whole number: 3 and 3.0 pass, 1.5, True and "3" do
+    not)."""
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    if not ok and isinstance(value, (float, np.floating)) and float(value).is_integer():
+        ok, value = True, int(value)
+    if not ok:
+        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be <= {maximum}, got {value}")
+    return int(value)
+
+
+def check_seed(seed) -> int:
+    """A PRNG seed: a whole number that fits in 64 bits, |seed| < 2^63 (what ``jax.random.PRNGKey`` takes)."""
+    if seed is None or isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if not -(2**63) <= int(seed) < 2**63:
+        raise ValueError(f"seed must fit in 64 bits (|seed| < 2^63), got {seed}")
+    return int(seed)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -213,7 +248,7 @@ def metrics_reducer(
 
 def run_keys(seed: int, run_indices) -> jax.Array:
     """PRNG key of each run: fold_in(PRNGKey(seed), k), independent of batching."""
-    base = jax.random.PRNGKey(seed)
+    base = jax.random.PRNGKey(check_seed(seed))
     return jax.vmap(lambda k: jax.random.fold_in(base, k))(jnp.asarray(run_indices, jnp.uint32))
 
 
@@ -242,6 +277,8 @@ def _simulation(
 ):
     """The compiled batch function of a simulated Monte Carlo (scenario, params, keys) -> engine.Result."""
     dt = check_dt(dt)
+    duration = check_duration(duration)
+    trace_every = check_count("trace_every", trace_every or 0)
     engine.check_hold(hold)
     n_steps = int(round(duration / dt))
     if n_steps < 1:
@@ -428,8 +465,9 @@ def monte_carlo(
     Memory per chunk: the state and accumulators of ``chunk`` runs, one noise block (chunk x 1000 x channels)
     and the decimated traces; never the per-step trajectories.
     """
-    if runs < 1:
-        raise ValueError(f"runs must be >= 1, got {runs}")
+    runs = check_count("runs", runs, 1, MAX_RUNS)
+    chunk = check_count("chunk", chunk, 1)
+    seed = check_seed(seed)
     engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
@@ -454,7 +492,7 @@ def monte_carlo(
         progress=hook,
     )
     have = set() if previous is None else set(int(i) for i in previous.run_indices)
-    todo = np.asarray([k for k in range(runs) if k not in have], int)
+    todo = np.arange(runs) if previous is None else np.setdiff1d(np.arange(runs), np.asarray(sorted(have), int))
     chunk = max(1, min(chunk, max(len(todo), 1)))
     if mesh is not None:
         chunk = -(-chunk // mesh.size) * mesh.size  # a multiple of the device count

@@ -353,11 +353,20 @@ def triad(acc: jax.Array, mag: jax.Array, frame: str = "ENU") -> jax.Array:
     up = a / |a| (the specific force at rest points up), east = m x up / |m x up|, north = up x east: the rows of
     the sensor-to-ENU matrix are (east, north, up) in sensor coordinates; other frames (``"NED"``, ``"NWU"``,
     :mod:`jaxatt.frames`) by a fixed rotation. "North" is magnetic north (the field's horizontal direction).
+    Degenerate samples still give a rotation: a zero accelerometer takes the sensor's z axis as up, and a
+    magnetometer that is zero or parallel to up (no horizontal component) takes east from the sensor axis least
+    aligned with up (the heading is then arbitrary).
     """
     from .frames import frame_rotation
 
-    u = unit(acc)
-    east = unit(cross(mag, u))
+    acc, mag = jnp.asarray(acc), jnp.asarray(mag)
+    eye = jnp.eye(3, dtype=acc.dtype)
+    a2 = jnp.sum(acc * acc, axis=-1, keepdims=True)
+    u = jnp.where(a2 > 0, unit(acc), eye[2])
+    e = cross(mag, u)
+    e2, m2 = jnp.sum(e * e, axis=-1, keepdims=True), jnp.sum(mag * mag, axis=-1, keepdims=True)
+    fallback = cross(eye[jnp.argmin(jnp.abs(u), axis=-1)], u)  # a horizontal vector from the least aligned axis
+    east = unit(jnp.where(e2 > 1e-12 * m2, e, fallback))
     north = cross(u, east)
     r_enu = jnp.stack([east, north, u], axis=-2)
     if frame == "ENU":

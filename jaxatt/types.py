@@ -18,7 +18,11 @@ from __future__ import annotations
 
 from typing import Any, Callable, NamedTuple, Optional
 
-__all__ = ["ArrayLike", "ImuSample", "VectorSample", "Interval", "Observer", "HOLDS"]
+__all__ = ["ArrayLike", "ImuSample", "VectorSample", "Interval", "Observer", "HOLDS", "MAX_RUNS"]
+
+#: Most runs of one Monte Carlo study: run k's key is fold_in(PRNGKey(seed), k) with k a uint32, so beyond this
+#: keys would repeat.
+MAX_RUNS = 2**32
 
 #: The type of a gain or reference in an observer's ``Params``: a numpy array or float when the params are built,
 #: a jax array or a tracer inside ``jit`` / ``grad`` / ``vmap``. Deliberately loose for the type checker (``Any``).

@@ -217,6 +217,14 @@ BAD_INPUT = [
     (["tune", "--experiment", "batista-so3", "--seed", "1.5"], r"argument --seed: must be an integer"),
     (["reproduce", "batista-so3", *MC, "--json", ""], r"--json: empty path"),
     (["reproduce", "batista-so3", *MC, "--plot", "{d}/fig.txt"], r"--plot .*fig\.txt: unknown figure format"),
+    # output extensions, observer specs, folders as files, degenerate references, absurd counts
+    (["filter", "--log", "{d}/log.csv", "--out", "{d}/est.json"], r"--out .*est\.json: unknown extension '\.json'"),
+    (["filter", "--log", "{d}/log.csv", "--observer", ":x", "--out", "{d}/keep.csv"], r"--observer ':x'.*module:attr"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/folder", "--out", "{d}/keep.csv"], r"folder.*is a folder"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "0,0,0"], r"--mag-ref: .*non-zero"),
+    (["excitation", "--scenario", "rotating", "--dt", "100"], r"dt \(100 s\) must be shorter than the duration"),
+    (["excitation", "--scenario", "rotating", "--dt", "0.5", "--window", "0.1"], r"shorter than the sample interval"),
+    (["reproduce", "batista-so3", "--runs", "1" + "0" * 20], r"argument --runs: must be <= 4294967296"),
 ]
 
 
@@ -256,8 +264,12 @@ NON_FINITE = [
 def test_non_finite_result_exits_1_saying_where(files, capsys, argv, match):
     rc, err = _run(argv, files, capsys)
     assert rc == 1, (rc, err)
+    warned = [line for line in err if line.startswith("jaxatt: warning: ")]
+    err = [line for line in err if line not in warned]
     assert len(err) == 1 and err[0].startswith("jaxatt: error: non-finite result"), err
     assert re.search(match, err[0]), err[0]
+    if "huge_gyr" in argv[2]:  # 1e300 rad/s: the units warning comes first, on its own line
+        assert any("gyr reaches" in w and "deg/s" in w for w in warned), warned
 
 
 def test_an_output_that_is_a_device_or_fifo_is_written_into_not_replaced(tmp_path):

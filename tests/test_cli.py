@@ -147,6 +147,13 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     ned = np.genfromtxt(out2, delimiter=",", names=True)
     q_ned = np.column_stack([ned[c] for c in ("qw", "qx", "qy", "qz")])
     np.testing.assert_allclose(q_ned, jaxatt.frames.change_frame(est.quat, "NED", "ENU"), atol=1e-15)
+    # --out .npz: the same columns as arrays
+    out3 = tmp_path / "est.npz"
+    assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", str(out3)]) == 0
+    with np.load(out3) as z:
+        assert tuple(z.files) == table.dtype.names
+        for name in table.dtype.names:
+            np.testing.assert_array_equal(z[name], table[name], err_msg=name)
 
 
 def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):

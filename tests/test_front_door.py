@@ -4,6 +4,7 @@ monte_carlo take it like a registered one. Each result is checked against a seco
 finite difference), and bad input gets one clear line."""
 
 import json
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -195,6 +196,48 @@ def test_registered_observers_through_the_front_door():
         ),
         (lambda g, a, m: jaxatt.broad_score("robust", None, []), "empty"),
         (lambda g, a, m: jaxatt.fit("robust", None, [1, 2]), "Trial"),
+        # another observer's params, a gain that is not a number
+        (
+            lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, params=jaxatt.observers.madgwick.Params(0.1)),
+            r"params of mahony must be its Params \(kp, ki\).*got Params \(beta\)",
+        ),
+        (lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, params=3.0), "params of mahony must be"),
+        (lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, params={"kp": "abc"}), "field 'kp' must be a"),
+        # an observer of the user's that breaks the engine's contract: named before anything runs
+        (lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: None), r"step must return a pair .*got None"),
+        (lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: st), r"step must return a pair .*got MyState"),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st._replace(bias=jnp.zeros(5)), st)),
+            r"state field \.bias is float\d\d\[3\] after init but float\d\d\[5\] after step",
+        ),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, st.q)),
+            r"step must return its output as a NamedTuple or dict .*got an array",
+        ),
+        (lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"x": st.q})), "neither a field q"),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"q": st.q[:3]})),
+            r"q of step must be a float array of shape \(4,\), got float\d\d\[3\]",
+        ),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"q": st.q.astype(jnp.int32)})),
+            r"q of step must be a float array .*got int32\[4\]",
+        ),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"q": 2 * st.q})),
+            r"sample 1 .* is not a unit quaternion \(norm 2\)",
+        ),
+        # monte_carlo's arguments
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=0.0), "duration must be a finite positive"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=float("inf")), "duration must be a finite positive"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", runs=1.5), "runs must be a whole number"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", runs=2**33), "runs must be <= "),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", chunk=0), "chunk must be >= 1"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", trace_every=-1), "trace_every must be >= 0"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=2**70), "seed must fit in 64 bits"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=None), "seed must be an integer"),
+        (lambda g, a, m: jaxatt.monte_carlo("mahony", scenario="x"), "scenario must be an AHRS scenario"),
+        (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, window_start="a"), "window_start must be"),
     ],
 )
 def test_bad_input_is_one_clear_line(call, match):
@@ -203,6 +246,72 @@ def test_bad_input_is_one_clear_line(call, match):
     with pytest.raises(ValueError, match=match) as e:
         call(g, a, m)
     assert "\n" not in str(e.value)
+
+
+def _mine(g, a, m, *, step):
+    """jaxatt.filter with MY_OBSERVER's init and another step."""
+    return jaxatt.filter(Observer(my_init, step, "broken"), g, a, m, dt=0.01, params=MY_PARAMS)
+
+
+def test_resume_without_out_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="resume=True needs out"):
+        jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, resume=True)
+
+
+def _tiny_trial():
+    rng = np.random.default_rng(3)
+    n = 40
+    samples = ImuSample(
+        np.arange(n) * 0.01,
+        rng.normal(size=(n, 3)) * 0.01,
+        np.tile([0, 0, 9.8], (n, 1)),
+        np.tile([0, 20, -40.0], (n, 1)),
+    )
+    return broad.Trial("00_tiny", samples, np.tile([1.0, 0, 0, 0], (n, 1)), np.ones(n, bool), 100.0, "undisturbed")
+
+
+@pytest.mark.parametrize(
+    "change, warning",
+    [
+        ({"gyr": np.rad2deg}, r"gyr reaches .* is it in deg/s"),
+        ({"acc": lambda a: a / 9.81}, r"median \|acc\| is 1: is it in g"),
+        ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms"),
+        ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no finite reading"),
+    ],
+)
+def test_data_in_the_wrong_units_is_warned_about(change, warning):
+    """Recordings in deg/s, g or ms are common; the front door says so (and still runs: units are not proof)."""
+    n = 60
+    t = np.arange(n) * 0.01
+    d = {"t": t, "gyr": np.tile([0.0, 0.0, 1.0], (n, 1)), "acc": np.tile([0, 0, 9.81], (n, 1))}
+    d["mag"] = np.tile([0, 20, -40.0], (n, 1))
+    d = {k: change.get(k, lambda v: v)(v) for k, v in d.items()}
+    with pytest.warns(UserWarning, match=warning):
+        try:
+            jaxatt.filter(MY_OBSERVER, d["gyr"], d["acc"], d["mag"], t=d["t"], params=MY_PARAMS)
+        except FloatingPointError:  # an all-NaN magnetometer gives NaN in this simple observer: fine here
+            pass
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the unchanged recording: no warning
+        jaxatt.filter(
+            MY_OBSERVER,
+            np.tile([0.0, 0.0, 1.0], (n, 1)),
+            np.tile([0, 0, 9.81], (n, 1)),
+            np.tile([0, 20, -40.0], (n, 1)),
+            t=t,
+            params=MY_PARAMS,
+        )
+
+
+def test_a_degenerate_first_sample_still_starts_on_so3():
+    """NLO starts from TRIAD of the first sample; with a magnetometer reading zero (a dead sensor) the start was a
+    rank-deficient matrix and the quaternions had norm 0.7 with exit 0. Now every estimate is a unit quaternion
+    and the inclination (the only thing a dead magnetometer leaves observable) is right."""
+    n = 50
+    g, a = np.zeros((n, 3)), np.tile([0.0, 3.0, 9.3], (n, 1))
+    est = jaxatt.filter("nlo", g, a, np.zeros((n, 3)), dt=0.01)
+    np.testing.assert_allclose(np.linalg.norm(est.quat, axis=-1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
 
 
 def test_non_finite_estimate_is_an_error_naming_the_sample():

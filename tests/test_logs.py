@@ -101,6 +101,20 @@ def test_npz_errors(tmp_path):
     np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 3)), quat_true=np.zeros((3, 3)))
     with pytest.raises(ValueError, match="quat_true"):
         logs.load_log(p, with_truth=True)
+    # files numpy reads but that are not logs of real numbers: each error names the file
+    np.savez(p, t=np.array([object()] * 3, dtype=object), gyr=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"bad\.npz: cannot read it as an NPZ of numeric arrays"):
+        logs.load_log(p)
+    np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 3)) + 1j)
+    with pytest.raises(ValueError, match=r"bad\.npz: gyr is complex"):
+        logs.load_log(p)
+    with open(p, "wb") as f:
+        np.save(f, np.arange(3.0))  # one .npy array under an .npz name
+    with pytest.raises(ValueError, match=r"bad\.npz: .*one array"):
+        logs.load_log(p)
+    p.write_text("not a zip")
+    with pytest.raises(ValueError, match=r"bad\.npz: cannot read it"):
+        logs.load_log(p)
 
 
 def test_save_validates_and_suffix(tmp_path):

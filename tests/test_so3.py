@@ -600,3 +600,27 @@ def test_vmap_of_grad(rng):
     wrapped = norms > PI
     expect = phi_np / norms[:, None] * np.where(wrapped, -1.0, 1.0)[:, None]
     np.testing.assert_allclose(np.asarray(g), expect, atol=1e-12)
+
+
+def test_triad_recovers_the_rotation_and_stays_a_rotation_on_degenerate_samples(rng):
+    """TRIAD gives back R (sensor to ENU) from a = R^T up, m = R^T m_enu; a zero accelerometer, or a magnetometer
+    that is zero or parallel to up, still gives a rotation (det 1) whose up row is a / |a| (the heading is then
+    arbitrary): the starts of the recorded-data observers never leave SO(3)."""
+    up, field = np.array([0.0, 0.0, 9.81]), np.array([0.0, 20.0, -44.0])  # ENU: field north and down
+    for _ in range(10):
+        r = np.asarray(so3.exp(jnp.asarray(rng.normal(size=3) * 1.5)))
+        np.testing.assert_allclose(
+            np.asarray(so3.triad(jnp.asarray(r.T @ up), jnp.asarray(r.T @ field))), r, atol=1e-12
+        )
+    a = rng.normal(size=3) * 5
+    cases = [(a, np.zeros(3)), (a, 3.0 * a), (a, -a), (np.zeros(3), field), (np.zeros(3), np.zeros(3))]
+    for acc, mag in cases:
+        for dtype in (jnp.float32, jnp.float64):
+            m = np.asarray(so3.triad(jnp.asarray(acc, dtype), jnp.asarray(mag, dtype)), np.float64)
+            tol = 1e-6 if dtype == jnp.float32 else 1e-12
+            np.testing.assert_allclose(m @ m.T, np.eye(3), atol=tol)
+            assert abs(np.linalg.det(m) - 1.0) < tol
+            want_up = acc / np.linalg.norm(acc) if np.any(acc) else np.array([0.0, 0.0, 1.0])
+            np.testing.assert_allclose(m[2], want_up, atol=tol)
+    batch = so3.triad(jnp.asarray(np.stack([a, a])), jnp.asarray(np.stack([a, np.zeros(3)])))
+    assert batch.shape == (2, 3, 3)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -50,6 +51,8 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     """
 
     def arr(name, v, shape_tail):
+        if np.iscomplexobj(v):
+            raise ValueError(f"{source}: {name} is complex, expected real numbers")
         try:
             a = np.asarray(v, dtype=np.float64)
         except (TypeError, ValueError) as e:
@@ -212,13 +215,20 @@ def save_csv(path, samples: ImuSample, quat_true=None) -> None:
 def load_npz(path, *, with_truth: bool = False):
     """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q))."""
     src = str(path)
-    with np.load(path, allow_pickle=False) as z:
-        keys = set(z.files)
-        for k in ("t", "gyr"):
-            if k not in keys:
-                raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)})")
-        get = lambda k: z[k] if k in keys else None  # noqa: E731
-        samples, q = check_log(ImuSample(get("t"), get("gyr"), get("acc"), get("mag")), get("quat_true"), source=src)
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a single .npy array under an .npz name
+            raise ValueError("it holds one array, not named arrays t, gyr, ...")
+        with z:
+            arrays = {k: z[k] for k in z.files if k in ("t", "gyr", "acc", "mag", "quat_true")}
+            keys = set(z.files)
+    except (ValueError, zipfile.BadZipFile) as e:  # not an NPZ, pickled (object) arrays, a damaged file
+        raise ValueError(f"{src}: cannot read it as an NPZ of numeric arrays ({e})") from None
+    for k in ("t", "gyr"):
+        if k not in keys:
+            raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)})")
+    get = arrays.get
+    samples, q = check_log(ImuSample(get("t"), get("gyr"), get("acc"), get("mag")), get("quat_true"), source=src)
     return (samples, q) if with_truth else samples
 
 

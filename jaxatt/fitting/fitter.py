@@ -613,6 +613,8 @@ def fit(
                 )
             if not resume and previous.get("status") in FINISHED:
                 out_path = partial  # the finished fit stays in out until the new one finishes
+    if resume and out is None:
+        raise ValueError("resume=True needs out (the gains file of the interrupted fit)")
     if resume and previous is None:
         raise ValueError(f"resume: no gains file at {out!r} to continue")
     res = _fit(
@@ -758,7 +760,7 @@ def _fit(
         )
     if objective != "montecarlo":
         raise ValueError(f"objective {objective!r} needs a study as data (recorded trials: objective='montecarlo')")
-    from ..api import compute_dtype, resolve_observer
+    from ..api import check_own_observer, compute_dtype, resolve_observer
     from ..data import broad as B
 
     trials = list(data) if data is not None else []
@@ -779,6 +781,7 @@ def _fit(
         entry.check(p0)
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    check_own_observer(obs, p0, entry, dt_, hold)
     objective, n, take = recorded_objective(
         obs, bound, trials, hold=hold, dtype=dt_, step_remat=bool(step_remat), checkpoint=checkpoint
     )
