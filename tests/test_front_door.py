@@ -367,6 +367,11 @@ def test_imu_sample_is_the_users_input_type():
         return st._replace(t=st.t + dt), MyOut(st.t + dt, st.q, st.bias)
 
     jaxatt.filter(
-        Observer(init, step, "probe"), np.zeros((3, 3)), np.ones((3, 3)), np.ones((3, 3)), dt=0.1, params=MY_PARAMS
+        Observer(init, step, "probe"),
+        np.zeros((3, 3)),
+        np.tile([0.0, 0.0, 9.81], (3, 1)),
+        np.ones((3, 3)),
+        dt=0.1,
+        params=MY_PARAMS,
     )
     assert seen == {"init": ImuSample, "step": ImuSample}

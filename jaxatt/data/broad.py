@@ -314,12 +314,12 @@ def error_angles(quat_est, quat_true):
     """
     qe = np.asarray(quat_est, np.float64)
     qt = np.asarray(quat_true, np.float64)
-    qe = qe / np.linalg.norm(qe, axis=-1, keepdims=True)
-    qt = qt / np.linalg.norm(qt, axis=-1, keepdims=True)
-    conj = qt * np.array([1.0, -1.0, -1.0, -1.0])
-    d = _quatmult_np(qe, conj)
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # NaN rows (no truth, a diverged estimate) stay NaN
+        qe = qe / np.linalg.norm(qe, axis=-1, keepdims=True)
+        qt = qt / np.linalg.norm(qt, axis=-1, keepdims=True)
+        conj = qt * np.array([1.0, -1.0, -1.0, -1.0])
+        d = _quatmult_np(qe, conj)
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
         total = 2 * np.arccos(np.clip(np.abs(d[..., 0]), 0, 1))
         heading = 2 * np.arctan(np.abs(d[..., 3] / d[..., 0]))
         incl = 2 * np.arccos(np.clip(np.sqrt(d[..., 0] ** 2 + d[..., 3] ** 2), 0, 1))
