@@ -329,8 +329,8 @@ def _parser() -> argparse.ArgumentParser:
     src = ep.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=SCENARIOS)
     src.add_argument("--log", help="CSV or NPZ log (jaxatt.data.logs): acc and mag vs constant references")
-    ep.add_argument("--duration", type=_positive, default=60.0, help="simulated duration of a scenario, s")
-    ep.add_argument("--dt", type=_positive, default=0.01, help="sample period of a scenario, s")
+    ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
+    ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
     ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
     ep.add_argument(
         "--mag-ref",
@@ -338,7 +338,7 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)",
     )
-    ep.add_argument("--frame", choices=["NED", "ENU"], default="NED", help="log: navigation frame of --mag-ref")
+    ep.add_argument("--frame", choices=["NED", "ENU"], default=None, help="log: navigation frame of --mag-ref (NED)")
     ep.add_argument(
         "--threshold",
         type=_nonneg,
@@ -863,7 +863,14 @@ def _excitation(args) -> int:
 
     io.check_output_path(args.json, "--json")
     io.check_figure_path(args.plot, "--plot")
+    ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame")
+    given = [flag for flag in ignored if getattr(args, flag[2:].replace("-", "_")) is not None]
+    if given:
+        what = "a log (it has its own timestamps)" if args.log else "a scenario (its references are built in)"
+        raise UserError(f"{' and '.join(given)} do{'es' if len(given) == 1 else ''} not apply to {what}")
     if args.scenario:
+        args.duration = 60.0 if args.duration is None else args.duration
+        args.dt = 0.01 if args.dt is None else args.dt
         from .progress import Heartbeat
         from .sim import references
 
@@ -877,6 +884,7 @@ def _excitation(args) -> int:
         samples = _load_any_log(args.log)[0]
         if samples.acc is None and samples.mag is None:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
+        args.frame = args.frame or "NED"
         fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
         if "mag" in fields and args.mag_ref is None:
             raise UserError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")

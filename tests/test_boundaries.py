@@ -222,6 +222,8 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/log.csv", "--observer", ":x", "--out", "{d}/keep.csv"], r"--observer ':x'.*module:attr"),
     (["filter", "--log", "{d}/log.csv", "--gains", "{d}/folder", "--out", "{d}/keep.csv"], r"folder.*is a folder"),
     (["excitation", "--log", "{d}/log.csv", "--mag-ref", "0,0,0"], r"--mag-ref: .*non-zero"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "1,0,0", "--dt", "0.1"], r"--dt does not apply to a log"),
+    (["excitation", "--scenario", "rotating", "--mag-ref", "1,0,0"], r"--mag-ref does not apply to a scenario"),
     (["excitation", "--scenario", "rotating", "--dt", "100"], r"dt \(100 s\) must be shorter than the duration"),
     (["excitation", "--scenario", "rotating", "--dt", "0.5", "--window", "0.1"], r"shorter than the sample interval"),
     (["reproduce", "batista-so3", "--runs", "1" + "0" * 20], r"argument --runs: must be <= 4294967296"),
