@@ -99,8 +99,8 @@ def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndar
 
 def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
-    widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a sample
-    interval above 1 s (ms timestamps?), a sensor with no finite reading."""
+    widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
+    interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no finite reading."""
     with np.errstate(invalid="ignore"):
         notes = []
         for name, a in (("gyr", gyr), ("acc", acc), ("mag", mag)):
@@ -113,9 +113,17 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
             acc_norm = float(np.nanmedian(np.linalg.norm(acc, axis=-1)))
             if 0.5 < acc_norm < 2.0:
                 notes.append(f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest)")
-        step = float(np.median(np.diff(ts)))
+        d = np.diff(ts)
+        step = float(np.median(d))
         if step > 1.0:
-            notes.append(f"the sample interval is {step:.4g} s: are the timestamps in ms? jaxatt expects s")
+            notes.append(f"the median sample interval is {step:.4g} s: are the timestamps in ms? jaxatt expects s")
+        gaps = d > 10.0 * step
+        if gaps.any():
+            k = int(np.argmax(d))
+            notes.append(
+                f"{int(gaps.sum())} sample intervals are longer than 10x the median ({step:.3g} s), the longest "
+                f"{d[k]:.4g} s after t = {ts[k]:.6g} s (sample {k}): the gyro is integrated across each gap"
+            )
     for note in notes:
         warnings.warn(note, stacklevel=3)
 
@@ -479,11 +487,7 @@ def broad_score(
     """
     from .data import broad as B
 
-    trials = list(trials)
-    if not trials:
-        raise ValueError("trials is empty (load them with jaxatt.data.broad.load)")
-    if not all(isinstance(tr, B.Trial) for tr in trials):
-        raise ValueError("trials must be jaxatt.data.broad.Trial objects (jaxatt.data.broad.load)")
+    trials = B.check_trials(trials)
     dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import sys
 import threading
@@ -194,7 +195,8 @@ def _parser() -> argparse.ArgumentParser:
         "--frame",
         choices=["ENU", "NED", "NWU"],
         default="ENU",
-        help="navigation frame of the written quaternions (default ENU)",
+        help="navigation frame of the written quaternions (default ENU): a registered observer's estimate is "
+        "converted to it; your own observer's (module:attr) is written as it is and only labelled with it",
     )
     fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
@@ -616,7 +618,7 @@ def _evaluate(args) -> int:
     from .fitting import gainsfile
 
     study = studies.get(args.experiment)
-    io.check_output_path(args.json, "--json")
+    io.check_output_path(args.json, "--json", inputs={"--gains": args.gains})
     cfg = study.config(**({"duration": args.duration} if args.duration is not None else {}))
     s = study.setup(**{k: v for k, v in cfg._asdict().items()})
     params, source, warn = s.params, "paper", None
@@ -689,7 +691,7 @@ def _broad(args) -> int:
     from . import api, io
     from .data import broad
 
-    io.check_output_path(args.json, "--json")
+    io.check_output_path(args.json, "--json", inputs={"--gains": args.gains})
     from .progress import Heartbeat
 
     trials = broad.load(args.data_dir, args.trials)
@@ -729,7 +731,7 @@ def _broad_tune(args) -> int:
     from .data import broad
     from .fitting import fitter
 
-    io.check_output_path(args.out, "--out")
+    io.check_output_path(args.out, "--out", inputs={"--init-gains": args.init_gains})
     trials = broad.load(args.data_dir, args.trials)
     from .progress import Heartbeat
 
@@ -796,7 +798,9 @@ def _filter(args) -> int:
     from . import api, io
     from .observers import registry
 
-    out = io.check_output_path(args.out, "--out", suffixes=FILTER_OUTPUTS)
+    out = io.check_output_path(
+        args.out, "--out", suffixes=FILTER_OUTPUTS, inputs={"--log": args.log, "--gains": args.gains}
+    )
     assert out is not None  # --out is required
     if ":" in args.observer:
         observer = _import_attr(args.observer, "--observer")
@@ -813,6 +817,14 @@ def _filter(args) -> int:
 
     samples, rate = _load_any_log(args.log)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
+    if args.dt is not None and len(samples.t) > 1:
+        d = np.diff(np.asarray(samples.t, float))
+        if np.max(np.abs(d - args.dt)) > 0.01 * args.dt:
+            warnings.warn(
+                f"--dt {args.dt:g} s replaces the log's timestamps (their intervals run from {d.min():.6g} to "
+                f"{d.max():.6g} s); the t column restarts at 0",
+                stacklevel=1,
+            )
     with Heartbeat(f"filtering {len(samples.t)} samples", bool(_progress(args))):
         est = api.filter(
             observer,
@@ -861,8 +873,8 @@ def _filter(args) -> int:
 def _excitation(args) -> int:
     from . import analysis, frames, io
 
-    io.check_output_path(args.json, "--json")
-    io.check_figure_path(args.plot, "--plot")
+    io.check_output_path(args.json, "--json", inputs={"--log": args.log})
+    io.check_figure_path(args.plot, "--plot", inputs={"--log": args.log, "--json": args.json})
     ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame")
     given = [flag for flag in ignored if getattr(args, flag[2:].replace("-", "_")) is not None]
     if given:
@@ -1001,8 +1013,23 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"jaxatt: warning: {message}", file=sys.stderr)
 
 
+_NEGATIVE_LIST = re.compile(r"^-(\d|\.\d)[^,]*,")
+
+
+def _join_negative_lists(argv: List[str]) -> List[str]:
+    """``--mag-ref -5,20,-40`` as ``--mag-ref=-5,20,-40``: argparse takes a value that starts with "-" and is
+    not one number for a flag."""
+    out: List[str] = []
+    for tok in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and _NEGATIVE_LIST.match(tok):
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(_join_negative_lists(list(sys.argv[1:] if argv is None else argv)))
     try:
         _IMPORTING.append(True)
         import jax

@@ -50,16 +50,22 @@ def to_jsonable(o: Any):
     return a.tolist() if a.ndim else a.item()
 
 
-def check_output_path(path, flag: str = "output", suffixes: Optional[Sequence[str]] = None) -> Optional[Path]:
+def check_output_path(
+    path, flag: str = "output", suffixes: Optional[Sequence[str]] = None, inputs: Optional[Mapping[str, Any]] = None
+) -> Optional[Path]:
     """Check, before computing, that ``path`` can be written: its folder exists or can be created and is
     writable, and ``path`` is not a folder; with ``suffixes`` (such as (".csv", ".npz"), "" for none), that its
-    extension is one of them (a device or FIFO is exempt). Returns the Path (None for None). ValueError naming
-    ``flag``."""
+    extension is one of them (a device or FIFO is exempt); with ``inputs`` ({flag: path} of the files the command
+    reads), that it is none of them (writing would destroy an input). Returns the Path (None for None).
+    ValueError naming ``flag``."""
     if path is None:
         return None
     if not str(path).strip():
         raise ValueError(f"{flag}: empty path")
     p = Path(path)
+    for other_flag, other in (inputs or {}).items():
+        if other is not None and str(other).strip() and _same_file(p, Path(other)):
+            raise ValueError(f"{flag} {path}: is the {other_flag} file (writing it would destroy the input)")
     if p.exists() and p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder, expected a file name")
     if suffixes is not None and not _is_special(p) and p.suffix.lower() not in suffixes:
@@ -87,10 +93,19 @@ def check_output_path(path, flag: str = "output", suffixes: Optional[Sequence[st
     return p
 
 
-def check_figure_path(path, flag: str = "--plot") -> Optional[Path]:
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
+
+
+def check_figure_path(path, flag: str = "--plot", inputs: Optional[Mapping[str, Any]] = None) -> Optional[Path]:
     """:func:`check_output_path` for a figure, and its extension is a format matplotlib writes (png, pdf, svg,
     ...), so that a run is not computed for a figure that cannot be saved. ValueError naming ``flag``."""
-    p = check_output_path(path, flag)
+    p = check_output_path(path, flag, inputs=inputs)
     if p is None or _is_special(p):
         return p
     from matplotlib.backend_bases import FigureCanvasBase

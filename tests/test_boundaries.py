@@ -227,6 +227,13 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--dt", "100"], r"dt \(100 s\) must be shorter than the duration"),
     (["excitation", "--scenario", "rotating", "--dt", "0.5", "--window", "0.1"], r"shorter than the sample interval"),
     (["reproduce", "batista-so3", "--runs", "1" + "0" * 20], r"argument --runs: must be <= 4294967296"),
+    (["filter", "--log", "{d}/log.csv", "--out", "{d}/log.csv"], r"--out .*log\.csv: is the --log file"),
+    (["filter", "--log", "{d}/log.csv", "--out", "{d}/../{d.name}/log.csv"], r"is the --log file"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "1,0,0", "--json", "{d}/log.csv"], r"is the --log file"),
+    (
+        ["broad-tune", "--data-dir", "{d}/trials_ok", "--init-gains", "{d}/keep.json", "--out", "{d}/keep.json"],
+        r"the --init-gains file",
+    ),
 ]
 
 

@@ -511,3 +511,55 @@ def test_published_mahony_float32_bit_exact():
     res = json.loads(line[len("RESULT") :])
     diffs = [res[n][k] - pub["trials"][n]["tagp_parameters"][k] for n in names for k in broad.METRICS]
     assert max(abs(d) for d in diffs) < 1e-10, max(abs(d) for d in diffs)
+
+
+def _synthetic_trial(name="01_x", n=50, rate=100.0):
+    t = np.arange(n) / rate
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    samples = ImuSample(t, np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([0.0, 20.0, -40.0], (n, 1)))
+    return broad.Trial(name, samples, q, np.ones(n, bool), rate, "undisturbed")
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda tr: [tr, tr], r"unique, '01_x' appears more than once"),
+        (lambda tr: [tr._replace(quat_true=tr.quat_true[:, :3])], r"quat_true must be float \(N, 4\)"),
+        (lambda tr: [tr._replace(quat_true=tr.quat_true * 3)], r"quat_true\[0\] has norm 3"),
+        (lambda tr: [tr._replace(quat_true=tr.quat_true * 0)], r"quat_true\[0\] has norm 0"),
+        (lambda tr: [tr._replace(movement=tr.movement[:10])], r"movement must be a bool array of shape \(50,\)"),
+        (lambda tr: [tr._replace(movement=tr.movement.astype(float))], r"movement must be a bool array"),
+        (lambda tr: [tr._replace(rate_hz=float("nan"))], r"rate_hz must be a positive number"),
+        (lambda tr: [tr._replace(rate_hz=285.714)], r"rate_hz = 285.714 Hz but samples.t steps by 0.01 s"),
+        (lambda tr: [tr._replace(samples=tr.samples._replace(acc=None))], r"samples.acc must have shape"),
+        (lambda tr: [tr._replace(samples=tr.samples._replace(gyr=tr.samples.gyr + np.inf))], r"gyr contains \+-inf"),
+    ],
+)
+def test_trials_built_by_hand_are_checked_with_one_line(change, match):
+    """Users with their own ground truth build Trials; broad_score names the trial and the field at fault instead
+    of a broadcasting error, a silently dropped trial (duplicate names) or a blame on the gains."""
+    import jaxatt
+
+    with pytest.raises(ValueError, match=match) as e:
+        jaxatt.broad_score("madgwick", None, change(_synthetic_trial()))
+    assert "\n" not in str(e.value)
+
+
+def test_a_fit_needs_a_scored_sample_in_every_trial():
+    """A trial without a scored sample would add a zero error to the fit's loss (a loss of exactly 0 and the start
+    gains returned as "best" for validation trials): refused, naming the trial."""
+    import jaxatt
+
+    good, idle = _synthetic_trial("01_a"), _synthetic_trial("02_b")
+    idle = idle._replace(movement=np.zeros(50, bool))
+    with pytest.raises(ValueError, match=r"trial 02_b: no scored sample .* leave it out of data"):
+        jaxatt.fit("madgwick", None, [good, idle], steps=1)
+    nan_truth = good._replace(name="03_c", quat_true=np.full((50, 4), np.nan))
+    with pytest.raises(ValueError, match=r"trial 03_c: no scored sample .* leave it out of val"):
+        jaxatt.fit("madgwick", None, [good], val=[nan_truth], steps=1)
+
+
+def test_every_broad_trial_passes_the_trial_check():
+    need_data()
+    trials = broad.load(DATA)
+    assert broad.check_trials(trials, need_scored=True) == trials

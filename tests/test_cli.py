@@ -108,6 +108,10 @@ def test_excitation_of_a_log_file(tmp_path, capsys):
     assert cli.main(["excitation", "--log", str(path), "--mag-ref", "0.2,0,0.4", "--window", "2"]) == 0
     assert "exciting in every window" in capsys.readouterr().out
     assert cli.main(["excitation", "--log", str(path), "--window", "2"]) == 2  # mag without --mag-ref
+    # a vector starting with a minus sign is a value, not a flag (argparse alone reads "-0.2,0,-0.4" as an option)
+    capsys.readouterr()
+    assert cli.main(["excitation", "--log", str(path), "--mag-ref", "-0.2,0,-0.4", "--window", "2"]) == 0
+    assert "exciting in every window" in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -147,6 +151,11 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     ned = np.genfromtxt(out2, delimiter=",", names=True)
     q_ned = np.column_stack([ned[c] for c in ("qw", "qx", "qy", "qz")])
     np.testing.assert_allclose(q_ned, jaxatt.frames.change_frame(est.quat, "NED", "ENU"), atol=1e-15)
+    # --dt that disagrees with the log's timestamps: said on stderr (the t column then restarts at 0)
+    capsys.readouterr()
+    out4 = tmp_path / "est_dt.csv"
+    assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--dt", "0.02", "--out", str(out4)]) == 0
+    assert "jaxatt: warning: --dt 0.02 s replaces the log's timestamps" in capsys.readouterr().err
     # --out .npz: the same columns as arrays
     out3 = tmp_path / "est.npz"
     assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", str(out3)]) == 0

@@ -238,6 +238,9 @@ def test_registered_observers_through_the_front_door():
         (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=None), "seed must be an integer"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", scenario="x"), "scenario must be an AHRS scenario"),
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, window_start="a"), "window_start must be"),
+        # fit's optimiser arguments
+        (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, clip=-1.0), "clip must be"),
+        (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], val_every=0), "val_every must be"),
     ],
 )
 def test_bad_input_is_one_clear_line(call, match):
@@ -251,6 +254,18 @@ def test_bad_input_is_one_clear_line(call, match):
 def _mine(g, a, m, *, step):
     """jaxatt.filter with MY_OBSERVER's init and another step."""
     return jaxatt.filter(Observer(my_init, step, "broken"), g, a, m, dt=0.01, params=MY_PARAMS)
+
+
+def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
+    """16 runs on 3 devices used to stop ``jaxatt tune`` with its default flags; now the fit takes the most
+    devices every batch splits over (2), all of them when they do (None), one when nothing else does."""
+    from jaxatt.fitting import fitter
+
+    monkeypatch.setattr(jax, "local_device_count", lambda: 3)
+    monkeypatch.setattr(jax, "process_count", lambda: 1)
+    assert fitter.devices_for_batches([16, 16]) == 2
+    assert fitter.devices_for_batches([15, 6]) is None
+    assert fitter.devices_for_batches([16, 3]) == 1
 
 
 def test_resume_without_out_is_refused(tmp_path):
@@ -277,6 +292,10 @@ def _tiny_trial():
         ({"acc": lambda a: a / 9.81}, r"median \|acc\| is 1: is it in g"),
         ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms"),
         ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no finite reading"),
+        (
+            {"t": lambda t: np.where(t > 0.3, t + 100.0, t)},
+            r"1 sample intervals are longer than 10x .*, the longest 100 s after t = 0.3 s \(sample 30\)",
+        ),
     ],
 )
 def test_data_in_the_wrong_units_is_warned_about(change, warning):

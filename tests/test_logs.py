@@ -117,6 +117,25 @@ def test_npz_errors(tmp_path):
         logs.load_log(p)
 
 
+def test_csv_rows_with_more_fields_than_the_header_and_a_byte_order_mark(tmp_path):
+    """One extra field on a row shifted its values one column (gyr_y = 999) silently; now it names the line. A
+    byte-order mark (Excel's "CSV UTF-8") is skipped, not read into the first column's name."""
+    n = 6
+    samples = ImuSample(np.arange(n) * 0.01, np.zeros((n, 3)), np.tile([0, 0, 9.81], (n, 1)), None)
+    good = tmp_path / "good.csv"
+    logs.save_log(good, samples)
+    lines = good.read_text().splitlines()
+    row = lines[3].split(",")
+    lines[3] = ",".join(row[:2] + ["999"] + row[2:])
+    bad = tmp_path / "extra.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"extra\.csv: line 4 has 8 fields, header has 7"):
+        logs.load_log(bad)
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + good.read_bytes())
+    np.testing.assert_array_equal(logs.load_log(bom).gyr, logs.load_log(good).gyr)
+
+
 def test_save_validates_and_suffix(tmp_path):
     s, _ = make_log()
     with pytest.raises(ValueError, match=r"acc must have shape"):
@@ -152,7 +171,7 @@ def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
     np.testing.assert_array_equal(fast.mag, checked[:, 7:10])
     with open(p, newline="") as f:
         f.readline()
-        assert logs._read_table_fast(f, list(range(len(header)))) is not None
+        assert logs._read_table_fast(f, list(range(len(header))), len(header)) is not None
     lines = p.read_text().splitlines()
     lines[5] = lines[5].replace(lines[5].split(",")[2], "", 1)  # an empty gyr_y cell on line 6
     p.write_text("\n".join(lines) + "\n")

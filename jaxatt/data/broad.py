@@ -48,6 +48,8 @@ from ..types import ImuSample, Observer
 __all__ = [
     "Trial",
     "PaddedTrials",
+    "check_trials",
+    "TRUTH_UNIT_TOLERANCE",
     "load",
     "load_trial",
     "list_trials",
@@ -162,7 +164,10 @@ def load_trial(path) -> Trial:
             missing = [k for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement") if k not in f]
             if missing or "sampling_rate" not in f.attrs:
                 raise ValueError(f"{path.name}: not a BROAD trial (missing {missing or ['sampling_rate attribute']})")
-            rate = float(np.asarray(f.attrs["sampling_rate"]).reshape(()))
+            rate_attr = np.asarray(f.attrs["sampling_rate"])
+            if rate_attr.size != 1:
+                raise ValueError(f"{path.name}: the sampling_rate attribute must be one number, got {rate_attr!r}")
+            rate = float(rate_attr.reshape(()))
             gyr = np.asarray(f["imu_gyr"][()], dtype=np.float64)
             acc = np.asarray(f["imu_acc"][()], dtype=np.float64)
             mag = np.asarray(f["imu_mag"][()], dtype=np.float64)
@@ -173,6 +178,8 @@ def load_trial(path) -> Trial:
     if gyr.ndim != 2 or gyr.shape[1:] != (3,):
         raise ValueError(f"{path.name}: imu_gyr has shape {gyr.shape}, expected (N, 3)")
     n = gyr.shape[0]
+    if n < 2:
+        raise ValueError(f"{path.name}: imu_gyr has {n} samples, a trial needs at least 2")
     for k, v in (("imu_acc", acc), ("imu_mag", mag)):
         if v.shape != (n, 3):
             raise ValueError(f"{path.name}: {k} has shape {v.shape}, expected ({n}, 3)")
@@ -186,6 +193,76 @@ def load_trial(path) -> Trial:
     except ValueError:
         group = ""
     return Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate, group)
+
+
+#: Largest | |q| - 1 | accepted in a finite ground-truth quaternion (BROAD's are unit to 1e-7).
+TRUTH_UNIT_TOLERANCE = 1e-3
+
+
+def check_trials(trials, what: str = "trials", need_scored: bool = False) -> List[Trial]:
+    """``trials`` as a list, or ValueError (one line naming the trial and field) unless each is a :class:`Trial`
+    with a unique name, N >= 2 samples, gyr / acc / mag (N, 3) real without +-inf, quat_true (N, 4) unit
+    quaternions (w, x, y, z) where finite, movement (N,) bool, rate_hz a positive number agreeing with
+    ``samples.t`` (1 %). ``need_scored``: every trial has a scored sample (movement and finite truth), as a fit's
+    loss needs (a trial with none would add a zero error)."""
+    trials = list(trials)
+    if not trials:
+        raise ValueError(f"{what} is empty (load them with jaxatt.data.broad.load)")
+    if not all(isinstance(tr, Trial) for tr in trials):
+        raise ValueError(f"{what} must be jaxatt.data.broad.Trial objects (jaxatt.data.broad.load)")
+    names = [tr.name for tr in trials]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"{what}: trial names must be unique, {', '.join(map(repr, dup))} appears more than once")
+    for tr in trials:
+        where = f"trial {tr.name}"
+        s = tr.samples
+        gyr = np.asarray(s.gyr)
+        n = gyr.shape[0] if gyr.ndim == 2 else -1
+        for field, v in (("gyr", s.gyr), ("acc", s.acc), ("mag", s.mag)):
+            a = np.asarray(v) if v is not None else None
+            if a is None or a.shape != (n, 3) or n < 2:
+                got = "None" if a is None else str(a.shape)
+                raise ValueError(f"{where}: samples.{field} must have shape (N, 3) with N >= 2 like gyr, got {got}")
+            if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+                raise ValueError(f"{where}: samples.{field} must be real numbers, got dtype {a.dtype}")
+            if np.isinf(a).any():
+                raise ValueError(f"{where}: samples.{field} contains +-inf (mark a missing reading with NaN)")
+        q = np.asarray(tr.quat_true)
+        if q.shape != (n, 4) or not np.issubdtype(q.dtype, np.floating):
+            raise ValueError(f"{where}: quat_true must be float (N, 4) = ({n}, 4), got {q.dtype}{list(q.shape)}")
+        finite = np.all(np.isfinite(q), axis=-1)
+        off = finite & (np.abs(np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=-1) - 1.0) > TRUTH_UNIT_TOLERANCE)
+        if off.any():
+            k = int(np.argmax(off))
+            raise ValueError(
+                f"{where}: quat_true[{k}] has norm {np.linalg.norm(q[k]):.6g}; the ground truth must be unit "
+                "quaternions (w, x, y, z), NaN where missing"
+            )
+        m = np.asarray(tr.movement)
+        if m.shape != (n,) or m.dtype != bool:
+            raise ValueError(f"{where}: movement must be a bool array of shape ({n},), got {m.dtype}{list(m.shape)}")
+        try:
+            rate = float(tr.rate_hz)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: rate_hz must be a number of Hz, got {tr.rate_hz!r}") from None
+        if not (np.isfinite(rate) and rate > 0):
+            raise ValueError(f"{where}: rate_hz must be a positive number of Hz, got {tr.rate_hz}")
+        t = np.asarray(s.t, np.float64)
+        if t.shape == (n,) and np.all(np.isfinite(t)):
+            step = float(np.median(np.diff(t)))
+            if not abs(step * rate - 1.0) <= 0.01:
+                raise ValueError(
+                    f"{where}: rate_hz = {rate:g} Hz but samples.t steps by {step:.6g} s ({1 / step:.6g} Hz)"
+                    if step > 0
+                    else f"{where}: samples.t must increase"
+                )
+        if need_scored and not np.any(scored_samples(tr)):
+            raise ValueError(
+                f"{where}: no scored sample (movement and finite quat_true); it would add a zero error to the "
+                f"loss: leave it out of {what}"
+            )
+    return trials
 
 
 def list_trials(data_dir) -> List[str]:

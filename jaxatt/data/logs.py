@@ -117,17 +117,19 @@ def _parse_float(s: str, row: int, col: str, source: str) -> float:
         raise ValueError(f"{source}: line {row}: column {col!r}: {s!r} is not a number") from None
 
 
-def _read_table_fast(f, columns: list) -> Optional[np.ndarray]:
+def _read_table_fast(f, columns: list, n_header: int) -> Optional[np.ndarray]:
     """The data rows' ``columns`` (indices) as a (rows, len(columns)) float array by numpy's C reader, or None
-    when a row is not plain numbers there (an empty cell, a quoted field, a short row): the checked reader
-    then says where."""
+    when the file is not plain numbers with one field per header column on every row (an empty cell, a quoted
+    field, a short or long row, a text column): the checked reader then says where."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": handled by the checked reader
-            table = np.loadtxt(f, delimiter=",", ndmin=2, dtype=np.float64, comments=None, usecols=columns)
+            table = np.loadtxt(f, delimiter=",", ndmin=2, dtype=np.float64, comments=None)
     except (ValueError, IndexError):
         return None
-    return table if table.size else None
+    if not table.size or table.shape[1] != n_header:
+        return None
+    return table[:, columns]
 
 
 def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
@@ -139,7 +141,7 @@ def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
     table = np.empty((len(rows), len(columns)))
     need = max(columns) + 1
     for k, r in enumerate(rows):
-        if len(r) < need:
+        if len(r) < need or any(c.strip() for c in r[len(header) :]):  # short, or values beyond the header
             raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
         for j, i in enumerate(columns):
             table[k, j] = _parse_float(r[i], k + 2, header[i], src)
@@ -153,7 +155,7 @@ def load_csv(path, *, with_truth: bool = False):
     is read cell by cell, and a cell that is not a number is refused with its line and column."""
     path = Path(path)
     src = str(path)
-    with open(path, newline="") as f:
+    with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
         first = f.readline()
         if not first.strip():
             raise ValueError(f"{src}: empty file (a header line is required)")
@@ -179,7 +181,7 @@ def load_csv(path, *, with_truth: bool = False):
         names = [c for cols in groups.values() for c in cols]
         columns = [idx[c] for c in names]
         body = f.tell()
-        table = _read_table_fast(f, columns)
+        table = _read_table_fast(f, columns, len(header))
         if table is None:
             f.seek(body)
             table = _read_table_checked(f, header, columns, src)

@@ -595,6 +595,12 @@ def fit(
         lr = 0.05 if optimizer == "adam" else 1.0
     if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
         raise ValueError(f"lr must be a positive number, got {lr!r}")
+    if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
+        raise ValueError(
+            f"clip must be a positive number (the largest gradient norm) or None (no clipping), got {clip!r}"
+        )
+    if isinstance(val_every, bool) or not isinstance(val_every, (int, np.integer)) or val_every < 1:
+        raise ValueError(f"val_every must be a whole number of steps >= 1, got {val_every!r}")
     final_path = io.check_output_path(out, "out")
     out_path, previous = final_path, None
     if final_path is not None:
@@ -768,9 +774,8 @@ def _fit(
         raise ValueError(
             "data must be a non-empty list of jaxatt.data.broad.Trial (jaxatt.data.broad.load) or a study name"
         )
-    val_trials = list(val) if val is not None else []
-    if val_trials and not all(isinstance(t, B.Trial) for t in val_trials):
-        raise ValueError("val must be a list of jaxatt.data.broad.Trial")
+    trials = B.check_trials(trials, "data", need_scored=True)
+    val_trials = B.check_trials(val, "val", need_scored=True) if val is not None and list(val) else []
     dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
     p0 = jax.tree_util.tree_map(
@@ -976,6 +981,8 @@ def _fit_study(
             metric_unit="deg RMS",
             optimizer=optimizer,
         )
+    if devices is None:  # every device that the batches split over evenly (3 devices, 16 runs: 2 devices)
+        devices = devices_for_batches([int(min(batch or train_runs, train_runs))] + ([val_runs] if val_runs else []))
     objective_fn = simulated_objective(
         s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat, devices=devices
     )
@@ -1040,6 +1047,17 @@ def _fit_study(
         metric_unit="deg",
         optimizer=optimizer,
     )
+
+
+def devices_for_batches(sizes) -> Optional[int]:
+    """The most local devices (<= the visible ones) over which every batch size in ``sizes`` splits evenly, as a
+    device count for ``devices=``; None (every device) when that is all of them or with several processes (where
+    the batch sizes are the caller's to choose)."""
+    if jax.process_count() > 1:
+        return None
+    n = jax.local_device_count()
+    best = max(k for k in range(1, n + 1) if all(int(b) % k == 0 for b in sizes))
+    return None if best == n else best
 
 
 def _run(
