@@ -61,7 +61,10 @@ def compute_dtype(*arrays, dtype=None, what: str = "input"):
     is on; float32 otherwise (with a warning when float64 input is computed in float32)."""
     x64 = bool(jax.config.values["jax_enable_x64"])
     if dtype is not None:
-        dt = np.dtype(dtype)
+        try:
+            dt = np.dtype(dtype.lower() if isinstance(dtype, str) else dtype)
+        except TypeError:
+            raise ValueError(f"dtype must be float32 or float64, got {dtype!r}") from None
         if dt not in (np.float32, np.float64):
             raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
         if dt == np.float64 and not x64:
@@ -135,7 +138,10 @@ def _times(t, dt, n: int):
     if t is None and dt is None:
         raise ValueError("dt (the sample period, s) or t (timestamps, s) is required")
     if t is not None:
-        t = np.asarray(t, np.float64)
+        try:
+            t = np.asarray(t, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("t must be an array of timestamps in seconds (numbers)") from None
         if t.shape != (n,):
             raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
         d = np.diff(t)
@@ -143,6 +149,8 @@ def _times(t, dt, n: int):
             raise ValueError("t must be finite and strictly increasing (s)")
         return t, True
     try:
+        if isinstance(dt, (bool, np.bool_)):
+            raise TypeError
         dt = float(dt)
     except (TypeError, ValueError):
         raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
@@ -495,6 +503,12 @@ def broad_score(
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold)
+    if entry is not None and "mag" not in entry.needs:
+        warnings.warn(
+            f"{name} does not use the magnetometer: its heading is not observable, so its total and heading errors "
+            "include an arbitrary heading; compare inclination_rmse_deg",
+            stacklevel=2,
+        )
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)

@@ -577,7 +577,7 @@ def _tune(args) -> int:
 
     if args.optimizer == "lbfgs" and args.objective != "varfree":
         raise UserError("--optimizer lbfgs needs the same loss at every step: use it with --objective varfree")
-    io.check_output_path(args.out, "--out")
+    io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES)
     config = {"duration": args.duration} if args.duration is not None else None
     from .progress import Heartbeat
 
@@ -618,7 +618,7 @@ def _evaluate(args) -> int:
     from .fitting import gainsfile
 
     study = studies.get(args.experiment)
-    io.check_output_path(args.json, "--json", inputs={"--gains": args.gains})
+    io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains})
     cfg = study.config(**({"duration": args.duration} if args.duration is not None else {}))
     s = study.setup(**{k: v for k, v in cfg._asdict().items()})
     params, source, warn = s.params, "paper", None
@@ -691,7 +691,7 @@ def _broad(args) -> int:
     from . import api, io
     from .data import broad
 
-    io.check_output_path(args.json, "--json", inputs={"--gains": args.gains})
+    io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains})
     from .progress import Heartbeat
 
     trials = broad.load(args.data_dir, args.trials)
@@ -731,7 +731,7 @@ def _broad_tune(args) -> int:
     from .data import broad
     from .fitting import fitter
 
-    io.check_output_path(args.out, "--out", inputs={"--init-gains": args.init_gains})
+    io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES, inputs={"--init-gains": args.init_gains})
     trials = broad.load(args.data_dir, args.trials)
     from .progress import Heartbeat
 
@@ -846,10 +846,14 @@ def _filter(args) -> int:
         if v.ndim == 1:
             cols.append(v.astype(float))
             names.append(k)
-        elif v.ndim == 2 and v.shape[1] == 3:
-            for i, ax in enumerate("xyz"):
+        elif v.ndim == 2 and v.shape[1] in (3, 4):  # vectors x, y, z; quaternions w, x, y, z
+            for i, ax in enumerate("xyz" if v.shape[1] == 3 else "wxyz"):
                 cols.append(v[:, i].astype(float))
                 names.append(f"{k}_{ax}")
+        elif v.ndim == 3 and v.shape[1:] == (3, 3):  # matrices, row-major
+            for i in range(9):
+                cols.append(v[:, i // 3, i % 3].astype(float))
+                names.append(f"{k}_{i // 3}{i % 3}")
     if out.suffix.lower() == ".npz":
         io.write_npz(out, dict(zip(names, cols)))
     else:
@@ -873,7 +877,7 @@ def _filter(args) -> int:
 def _excitation(args) -> int:
     from . import analysis, frames, io
 
-    io.check_output_path(args.json, "--json", inputs={"--log": args.log})
+    io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--log": args.log})
     io.check_figure_path(args.plot, "--plot", inputs={"--log": args.log, "--json": args.json})
     ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame")
     given = [flag for flag in ignored if getattr(args, flag[2:].replace("-", "_")) is not None]

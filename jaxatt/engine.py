@@ -249,19 +249,26 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
     samples for ``hold="linear"``) returns ``(state, output)``;
     the new state has the structure, shapes and dtypes of ``init``'s (in ``obs_dtype``, as the engine casts it);
     the output (and ``observer.output``'s, when given) is a NamedTuple or dict with a float estimate ``q`` of
-    shape (4,) (w, x, y, z) or ``r`` of shape (3, 3). The front door (:mod:`jaxatt.api`) calls it for observers
-    written by users; errors raised by their own code are theirs."""
+    shape (4,) (w, x, y, z) or ``r`` of shape (3, 3). An exception in ``init`` or ``step`` (params of the wrong
+    kind, a missing sensor) becomes a ValueError naming the observer, the original as its ``__cause__``. The
+    front door (:mod:`jaxatt.api`) calls it for observers written by users."""
     name = observer.name
     obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
     p = cast_floats(params, obs_dtype)
     u = Interval(sample0, sample0) if check_hold(hold) == "linear" else sample0
 
-    def init_and_step():
+    def init_and_step(p, sample0, u):  # traced, as in the scan
         state = cast_floats(observer.init(p, sample0), obs_dtype)
         extra = observer.output(p, state) if observer.output is not None else None
         return state, observer.step(p, state, u, jnp.asarray(dt, obs_dtype)), extra
 
-    st, res, out0 = jax.eval_shape(init_and_step)
+    try:
+        st, res, out0 = jax.eval_shape(init_and_step, p, sample0, u)
+    except Exception as e:  # noqa: BLE001 - the user's code failed: one line, the traceback stays in __cause__
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"observer {name!r}: init or step failed on these params and a sample: {type(e).__name__}: {first}"
+        ) from e
     if not (isinstance(res, (tuple, list)) and not hasattr(res, "_fields") and len(res) == 2):
         got = "None" if res is None else f"{type(res).__name__}"
         raise ValueError(f"observer {name!r}: step must return a pair (state, output), got {got}")

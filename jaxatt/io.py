@@ -50,6 +50,10 @@ def to_jsonable(o: Any):
     return a.tolist() if a.ndim else a.item()
 
 
+#: the extensions of a JSON output (results, gains files); "" = none
+JSON_SUFFIXES = (".json", "")
+
+
 def check_output_path(
     path, flag: str = "output", suffixes: Optional[Sequence[str]] = None, inputs: Optional[Mapping[str, Any]] = None
 ) -> Optional[Path]:

@@ -228,6 +228,11 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--dt", "0.5", "--window", "0.1"], r"shorter than the sample interval"),
     (["reproduce", "batista-so3", "--runs", "1" + "0" * 20], r"argument --runs: must be <= 4294967296"),
     (["filter", "--log", "{d}/log.csv", "--out", "{d}/log.csv"], r"--out .*log\.csv: is the --log file"),
+    (
+        ["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/g.txt"],
+        r"--out .*g\.txt: unknown extension",
+    ),
+    (["reproduce", "batista-so3", *MC, "--json", "{d}/r.csv"], r"--json .*r\.csv: unknown extension '\.csv'"),
     (["filter", "--log", "{d}/log.csv", "--out", "{d}/../{d.name}/log.csv"], r"is the --log file"),
     (["excitation", "--log", "{d}/log.csv", "--mag-ref", "1,0,0", "--json", "{d}/log.csv"], r"is the --log file"),
     (

@@ -182,6 +182,18 @@ def test_registered_observers_through_the_front_door():
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
         (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=True), "dt must be a number"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=["a"] * len(g)), "t must be an array of timestamps"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, dtype="float16"), "dtype must be float32"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, dtype="quad"), "dtype must be float32"),
+        (
+            lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"q": st.q * p.missing})),
+            "init or step failed",
+        ),
+        (
+            lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], train_runs=4),
+            "options of a fit on a study",
+        ),
         (
             lambda g, a, m: jaxatt.filter(
                 "mahony", g, a, m, dt=0.01, params=jaxatt.observers.mahony.Params(jnp.asarray(-1.0), jnp.asarray(0.0))

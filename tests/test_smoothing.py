@@ -249,3 +249,6 @@ def test_filter_command_offline_with_timestamps(sim, tmp_path):
     q = np.column_stack([table[c] for c in ("qw", "qx", "qy", "qz")])
     const = jaxatt.filter("mahony", g, a, m, dt=0.01, offline=True)
     assert _same_rotation(q, const.quat, 1e-12)
+    for name in ("q_forward", "q_backward"):  # (T, 4) outputs are written as <name>_w ... <name>_z
+        written = np.column_stack([table[f"{name}_{c}"] for c in "wxyz"])
+        assert _same_rotation(written, const.outputs[name], 1e-12), name

@@ -601,7 +601,7 @@ def fit(
         )
     if isinstance(val_every, bool) or not isinstance(val_every, (int, np.integer)) or val_every < 1:
         raise ValueError(f"val_every must be a whole number of steps >= 1, got {val_every!r}")
-    final_path = io.check_output_path(out, "out")
+    final_path = io.check_output_path(out, "out", suffixes=io.JSON_SUFFIXES)
     out_path, previous = final_path, None
     if final_path is not None:
         partial = partial_path(final_path)
@@ -729,6 +729,8 @@ def _fit(
 ):
     """:func:`fit` once the gains file to write (``out_path``) and the fit to continue (``previous``) are known."""
     if isinstance(data, (str,)) or (data is not None and hasattr(data, "setup") and hasattr(data, "observers")):
+        if val is not None:
+            raise ValueError("val: a fit on a study validates on its own simulated runs (val_runs), not on trials")
         return _fit_study(
             data,
             observer,
@@ -766,6 +768,17 @@ def _fit(
         )
     if objective != "montecarlo":
         raise ValueError(f"objective {objective!r} needs a study as data (recorded trials: objective='montecarlo')")
+    study_only = {
+        "loss": loss is not None,
+        "transient_weight": transient_weight != 0.0,
+        "config": config is not None,
+        "train_runs": train_runs != 32,
+        "val_runs": val_runs != 16,
+        "refine_schedule": len(refine_schedule) > 0,
+    }
+    given = [k for k, v in study_only.items() if v]
+    if given:
+        raise ValueError(f"{', '.join(given)}: options of a fit on a study, not on recorded trials")
     from ..api import check_own_observer, compute_dtype, resolve_observer
     from ..data import broad as B
 

@@ -257,7 +257,7 @@ def reproduce(
         raise ValueError(f"runs must be >= 1, got {runs}")
     if resume and not json_path:
         raise ValueError("--resume needs --json (the finished runs are saved beside it)")
-    io.check_output_path(json_path, "--json")
+    io.check_output_path(json_path, "--json", suffixes=io.JSON_SUFFIXES)
     io.check_figure_path(plot_path, "--plot")
     log = _log(quiet)
     obs = dict(observers) if observers is not None else study.observers(cfg)
