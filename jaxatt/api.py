@@ -191,6 +191,11 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
             raise ValueError(
                 f"params are required for your own observer {observer.name!r} (registered observers have defaults)"
             )
+        if isinstance(params, (str, dict)):
+            raise ValueError(
+                f"params of your own observer {observer.name!r} must be its Params: a gains file or dict needs them "
+                "as the template, e.g. jaxatt.fitting.gainsfile.read_params(path, base=my_params)"
+            )
         return observer, params, None, observer.name
     if hasattr(observer, "init") and hasattr(observer, "step"):
         return resolve_observer(

@@ -191,6 +191,8 @@ def write_npz(path, arrays: Mapping[str, Any]) -> None:
 
 def read_json(path, what: str = "file") -> dict:
     """Read a JSON file; ValueError naming the file on a missing, unreadable or malformed file."""
+    if not str(path).strip():
+        raise ValueError(f"{what}: empty path")
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{what} {path}: " + ("is a folder, expected a file" if p.is_dir() else "not found"))

@@ -47,6 +47,8 @@ __all__ = [
 def check_dt(dt) -> float:
     """``dt`` as a float: finite and > 0 seconds (ValueError otherwise)."""
     try:
+        if isinstance(dt, (str, bytes, bool)):
+            raise TypeError
         dt = float(dt)
     except (TypeError, ValueError):
         raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
@@ -58,6 +60,8 @@ def check_dt(dt) -> float:
 def check_duration(duration) -> float:
     """``duration`` as a float: finite and > 0 seconds (ValueError otherwise)."""
     try:
+        if isinstance(duration, (str, bytes, bool)):
+            raise TypeError
         d = float(duration)
     except (TypeError, ValueError):
         raise ValueError(f"duration must be a number of seconds, got {duration!r}") from None
@@ -283,6 +287,8 @@ def _simulation(
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    if abs(duration / dt - n_steps) > 1e-6:
+        raise ValueError(f"duration ({duration:g} s) must be a whole number of steps of dt = {dt:g} s")
     if trace_every and engine.BLOCK % trace_every:
         raise ValueError(f"trace_every must divide {engine.BLOCK}, got {trace_every}")
     obs_dtype, sim_dtype = _dtypes(dtype)

@@ -228,6 +228,7 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--dt", "0.5", "--window", "0.1"], r"shorter than the sample interval"),
     (["reproduce", "batista-so3", "--runs", "1" + "0" * 20], r"argument --runs: must be <= 4294967296"),
     (["filter", "--log", "{d}/log.csv", "--out", "{d}/log.csv"], r"--out .*log\.csv: is the --log file"),
+    (["filter", "--log", "{d}/log.csv", "--gains", "", "--out", "{d}/keep.csv"], r"empty path"),
     (
         ["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/g.txt"],
         r"--out .*g\.txt: unknown extension",

@@ -168,10 +168,11 @@ def load_trial(path) -> Trial:
             if rate_attr.size != 1:
                 raise ValueError(f"{path.name}: the sampling_rate attribute must be one number, got {rate_attr!r}")
             rate = float(rate_attr.reshape(()))
-            gyr = np.asarray(f["imu_gyr"][()], dtype=np.float64)
-            acc = np.asarray(f["imu_acc"][()], dtype=np.float64)
-            mag = np.asarray(f["imu_mag"][()], dtype=np.float64)
-            quat = np.asarray(f["opt_quat"][()], dtype=np.float64)
+            raw = {k: np.asarray(f[k][()]) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat")}
+            for k, v in raw.items():
+                if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+                    raise ValueError(f"{path.name}: {k} must hold real numbers, got dtype {v.dtype}")
+            gyr, acc, mag, quat = (raw[k].astype(np.float64) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat"))
             movement = np.asarray(f["movement"][()]).reshape(-1).astype(bool)
     except OSError as e:
         raise ValueError(f"{path.name}: cannot read the HDF5 file ({e})") from None

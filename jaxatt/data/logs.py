@@ -93,6 +93,14 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
             raise ValueError(f"{source}: quat_true has {q.shape[0]} rows but t has {n}")
         if np.any(np.isinf(q)):
             raise ValueError(f"{source}: quat_true contains inf (use NaN where unknown)")
+        finite = np.all(np.isfinite(q), axis=-1)
+        norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=-1)
+        off = finite & (np.abs(norm - 1.0) > 1e-3)
+        if off.any():
+            k = int(np.argmax(off))
+            raise ValueError(
+                f"{source}: quat_true row {k} has norm {norm[k]:.6g}; the truth must be unit quaternions (w, x, y, z)"
+            )
     return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
 
 
