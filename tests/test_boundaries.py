@@ -181,6 +181,7 @@ BAD_INPUT = [
     (["evaluate", "--experiment", "batista-so3", "--json", "/proc/e.json"], r"--json /proc/e\.json"),
     # broad / broad-tune
     (["broad", "--data-dir", "{d}/nowhere"], r"nowhere.*not found|not found.*nowhere"),
+    (["broad", "--data-dir", "{d}/trials_ok/01_ok.hdf5"], r"01_ok\.hdf5: is a file; give the folder"),
     (["broad", "--data-dir", "{d}/trials_empty"], r"trials_empty"),
     (["broad", "--data-dir", "{d}/trials_no_mag"], r"imu_mag"),
     (["broad", "--data-dir", "{d}/trials_rate0"], r"sampling_rate"),

@@ -331,6 +331,11 @@ def resolve_trials(data_dir, trials=None) -> List[str]:
     """Trial names from a spec: None (all), or a list / comma-separated string of trial names, leading numbers
     ("01", "24"), group names ("undisturbed", "disturbed") or "fold1" / "fold2" (:func:`stratified_folds`).
     ValueError naming what is not found."""
+    if Path(data_dir).is_file():
+        raise FileNotFoundError(
+            f"BROAD data folder {data_dir}: is a file; give the folder that holds the trials (and --trials NAME), "
+            "or read one file with jaxatt.data.broad.load_trial"
+        )
     if not Path(data_dir).is_dir():
         raise FileNotFoundError(f"BROAD data folder not found: {data_dir}")
     names = list_trials(data_dir)

@@ -1108,6 +1108,8 @@ def _run(
     env = io.environment()
     resume_state = None
     if previous is not None:
+        if previous.get("observer") not in (None, name):
+            raise ValueError(f"resume: the saved fit is of observer {previous.get('observer')!r}, not {name!r}")
         old = previous.get("settings", {})
         keys = [
             "data",
