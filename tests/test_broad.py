@@ -563,3 +563,20 @@ def test_every_broad_trial_passes_the_trial_check():
     need_data()
     trials = broad.load(DATA)
     assert broad.check_trials(trials, need_scored=True) == trials
+
+
+def test_a_6d_observer_on_broad_is_warned_about_its_heading(monkeypatch):
+    """vqf-6d does not read the magnetometer: its BROAD total and heading errors include an arbitrary heading, and
+    broad_score says so (the filter run is replaced by a stub: this checks the boundary, not VQF)."""
+    import warnings
+
+    import jaxatt
+
+    tr = _synthetic_trial()
+    fake = {tr.name: {m: 1.0 for m in broad.METRICS}}
+    monkeypatch.setattr(broad, "score", lambda *a, **k: fake)
+    with pytest.warns(UserWarning, match=r"vqf-6d does not use the magnetometer.*inclination_rmse_deg"):
+        jaxatt.broad_score("vqf-6d", None, [tr])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxatt.broad_score("vqf", None, [tr])
