@@ -44,30 +44,27 @@ __all__ = [
 ]
 
 
+def check_seconds(name: str, value) -> float:
+    """``value`` as a float: a finite number of seconds > 0 (ValueError naming ``name`` otherwise)."""
+    try:
+        if isinstance(value, (str, bytes, bool)):
+            raise TypeError
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of seconds, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a finite positive number of seconds, got {value}")
+    return v
+
+
 def check_dt(dt) -> float:
     """``dt`` as a float: finite and > 0 seconds (ValueError otherwise)."""
-    try:
-        if isinstance(dt, (str, bytes, bool)):
-            raise TypeError
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
-    if not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
-    return dt
+    return check_seconds("dt", dt)
 
 
 def check_duration(duration) -> float:
     """``duration`` as a float: finite and > 0 seconds (ValueError otherwise)."""
-    try:
-        if isinstance(duration, (str, bytes, bool)):
-            raise TypeError
-        d = float(duration)
-    except (TypeError, ValueError):
-        raise ValueError(f"duration must be a number of seconds, got {duration!r}") from None
-    if not math.isfinite(d) or d <= 0:
-        raise ValueError(f"duration must be a finite positive number of seconds, got {duration}")
-    return d
+    return check_seconds("duration", duration)
 
 
 def check_count(name: str, value, minimum: int = 0, maximum: Optional[int] = None) -> int:
