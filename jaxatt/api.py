@@ -49,8 +49,6 @@ __all__ = [
 ]
 
 ObserverLike = Union[str, Observer, registry.Entry]
-#: Largest | |q| - 1 | accepted in an estimate of :func:`filter` (registered observers stay within 1e-6 in float32).
-UNIT_TOLERANCE = 1e-3
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -408,12 +406,13 @@ def filter(
             f"{name}: the estimate is first non-finite (or a zero quaternion) at sample {k} (t = {ts[k]:.6g} s), "
             f"{int(bad.sum())} of {len(bad)} estimates; check the inputs and gains"
         )
-    norm = np.linalg.norm(q, axis=-1)
-    off = np.abs(norm - 1.0) > UNIT_TOLERANCE
-    if off.any():
-        k = int(np.argmax(off))
+    from .data.logs import non_unit_row
+
+    off = non_unit_row(q)  # | |q| - 1 | > logs.UNIT_TOLERANCE
+    if off is not None:
+        k = off[0]
         raise ValueError(
-            f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm {norm[k]:.6g}); "
+            f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm {off[1]:.6g}); "
             "an observer's q must have norm 1 (normalise it in step) and its r must be a rotation matrix"
         )
     if entry is not None and entry.frame != frame:

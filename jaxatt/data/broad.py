@@ -44,12 +44,12 @@ import numpy as np
 
 from .. import engine
 from ..types import ImuSample, Observer
+from .logs import non_unit_row
 
 __all__ = [
     "Trial",
     "PaddedTrials",
     "check_trials",
-    "TRUTH_UNIT_TOLERANCE",
     "load",
     "load_trial",
     "list_trials",
@@ -196,10 +196,6 @@ def load_trial(path) -> Trial:
     return Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate, group)
 
 
-#: Largest | |q| - 1 | accepted in a finite ground-truth quaternion (BROAD's are unit to 1e-7).
-TRUTH_UNIT_TOLERANCE = 1e-3
-
-
 def check_trials(trials, what: str = "trials", need_scored: bool = False) -> List[Trial]:
     """``trials`` as a list, or ValueError (one line naming the trial and field) unless each is a :class:`Trial`
     with a unique name, N >= 2 samples, gyr / acc / mag (N, 3) real without +-inf, quat_true (N, 4) unit
@@ -232,12 +228,10 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
         q = np.asarray(tr.quat_true)
         if q.shape != (n, 4) or not np.issubdtype(q.dtype, np.floating):
             raise ValueError(f"{where}: quat_true must be float (N, 4) = ({n}, 4), got {q.dtype}{list(q.shape)}")
-        finite = np.all(np.isfinite(q), axis=-1)
-        off = finite & (np.abs(np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=-1) - 1.0) > TRUTH_UNIT_TOLERANCE)
-        if off.any():
-            k = int(np.argmax(off))
+        bad = non_unit_row(q)
+        if bad is not None:
             raise ValueError(
-                f"{where}: quat_true[{k}] has norm {np.linalg.norm(q[k]):.6g}; the ground truth must be unit "
+                f"{where}: quat_true[{bad[0]}] has norm {bad[1]:.6g}; the ground truth must be unit "
                 "quaternions (w, x, y, z), NaN where missing"
             )
         m = np.asarray(tr.movement)

@@ -30,7 +30,36 @@ import numpy as np
 from .. import io
 from ..types import ImuSample
 
-__all__ = ["load_log", "save_log", "load_csv", "save_csv", "load_npz", "save_npz", "check_log", "CSV_COLUMNS"]
+__all__ = [
+    "load_log",
+    "save_log",
+    "load_csv",
+    "save_csv",
+    "load_npz",
+    "save_npz",
+    "check_log",
+    "non_unit_row",
+    "UNIT_TOLERANCE",
+    "CSV_COLUMNS",
+]
+
+#: Largest | |q| - 1 | accepted in a quaternion that must be unit (ground truth, an estimate of
+#: :func:`jaxatt.filter`); BROAD's truth and the registered observers stay within 1e-6.
+UNIT_TOLERANCE = 1e-3
+
+
+def non_unit_row(q, tol: float = UNIT_TOLERANCE) -> Optional[Tuple[int, float]]:
+    """(row, norm) of the first finite row of ``q`` (N, 4) whose norm is off 1 by more than ``tol``; None if none
+    (rows with NaN are skipped: a missing truth, or the caller's own non-finite check)."""
+    q = np.asarray(q, np.float64)
+    finite = np.all(np.isfinite(q), axis=-1)
+    norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=-1)
+    off = finite & (np.abs(norm - 1.0) > tol)
+    if not off.any():
+        return None
+    k = int(np.argmax(off))
+    return k, float(norm[k])
+
 
 #: Column names of the CSV format (vector groups in x, y, z order).
 CSV_COLUMNS = {
@@ -93,13 +122,11 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
             raise ValueError(f"{source}: quat_true has {q.shape[0]} rows but t has {n}")
         if np.any(np.isinf(q)):
             raise ValueError(f"{source}: quat_true contains inf (use NaN where unknown)")
-        finite = np.all(np.isfinite(q), axis=-1)
-        norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=-1)
-        off = finite & (np.abs(norm - 1.0) > 1e-3)
-        if off.any():
-            k = int(np.argmax(off))
+        bad = non_unit_row(q)
+        if bad is not None:
             raise ValueError(
-                f"{source}: quat_true row {k} has norm {norm[k]:.6g}; the truth must be unit quaternions (w, x, y, z)"
+                f"{source}: quat_true row {bad[0]} has norm {bad[1]:.6g}; the truth must be unit quaternions "
+                "(w, x, y, z)"
             )
     return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
 

@@ -508,6 +508,10 @@ def _start(params, start, entry):
     raise ValueError(f"start must be a gains-file path, a dict of gains or a callable, got {type(start).__name__}")
 
 
+#: simulated runs a study fit trains / validates on by default (options of a study fit only)
+TRAIN_RUNS, VAL_RUNS = 32, 16
+
+
 def fit(
     observer=None,
     params=None,
@@ -538,8 +542,8 @@ def fit(
     loss: Optional[str] = None,
     transient_weight: float = 0.0,
     config: Optional[Mapping[str, Any]] = None,
-    train_runs: int = 32,
-    val_runs: int = 16,
+    train_runs: int = TRAIN_RUNS,
+    val_runs: int = VAL_RUNS,
     refine_schedule: Sequence[float] = (),
     checkpoint="auto",
     step_remat: Optional[bool] = None,
@@ -768,12 +772,12 @@ def _fit(
         )
     if objective != "montecarlo":
         raise ValueError(f"objective {objective!r} needs a study as data (recorded trials: objective='montecarlo')")
-    study_only = {
+    study_only = {  # given other than their defaults (the signature's)
         "loss": loss is not None,
         "transient_weight": transient_weight != 0.0,
         "config": config is not None,
-        "train_runs": train_runs != 32,
-        "val_runs": val_runs != 16,
+        "train_runs": train_runs != TRAIN_RUNS,
+        "val_runs": val_runs != VAL_RUNS,
         "refine_schedule": len(refine_schedule) > 0,
     }
     given = [k for k, v in study_only.items() if v]
@@ -788,7 +792,8 @@ def _fit(
             "data must be a non-empty list of jaxatt.data.broad.Trial (jaxatt.data.broad.load) or a study name"
         )
     trials = B.check_trials(trials, "data", need_scored=True)
-    val_trials = B.check_trials(val, "val", need_scored=True) if val is not None and list(val) else []
+    val_list = list(val) if val is not None else []  # once: val may be an iterator
+    val_trials = B.check_trials(val_list, "val", need_scored=True) if val_list else []
     dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
     p0 = jax.tree_util.tree_map(
