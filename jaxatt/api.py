@@ -260,7 +260,7 @@ class Estimate(NamedTuple):
         quat: (T, 4) (w, x, y, z), sensor to ``frame``.
         frame: the navigation frame of ``quat`` ("ENU", "NED", "NWU"; as given for your own observer).
         outputs: every field of the observer's output, (T, ...) numpy arrays (bias, diagnostics, ...), in the
-            observer's own frame; row 0 is the start (``init``).
+            observer's own frame; row 0 is the start (``init``); a ``t`` output is ``t`` (float64 s) as given.
         observer: its name.
         params: the params used.
     """
@@ -418,6 +418,8 @@ def filter(
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
+    if np.shape(outputs.get("t")) == ts.shape:  # the sample times, exact (float32 rounds epoch times to 128 s)
+        outputs["t"] = ts
     outputs.update(extra)
     return Estimate(ts, q, frame, outputs, name, p)
 

@@ -351,6 +351,19 @@ def test_a_degenerate_first_sample_still_starts_on_so3():
     np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
 
 
+def test_float32_data_with_epoch_timestamps_keeps_its_times():
+    """float32 sensors stamped with Unix times (1.7e9 s): the filter runs in float32, but the times it returns, as
+    ``t`` and as the ``t`` output, are the given float64 stamps (float32 rounds them to 128 s)."""
+    n = 300
+    t = 1.7e9 + 0.01 * np.arange(n)
+    g = np.zeros((n, 3), np.float32)
+    a, m = np.tile(np.float32([0, 0, 9.81]), (n, 1)), np.tile(np.float32([20, 0, -40]), (n, 1))
+    est = jaxatt.filter("robust", g, a, m, t=t)
+    assert est.quat.dtype == np.float32
+    np.testing.assert_array_equal(est.t, t)
+    np.testing.assert_array_equal(est.outputs["t"], t)
+
+
 def test_non_finite_estimate_is_an_error_naming_the_sample():
     """Gains that make the user's filter diverge: FloatingPointError with the first bad sample and time."""
     rng = np.random.default_rng(1)
