@@ -418,7 +418,8 @@ def filter(
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
-    if np.shape(outputs.get("t")) == ts.shape:  # the sample times, exact (float32 rounds epoch times to 128 s)
+    # the sample times, exact (float32 rounds Unix times to 128 s)
+    if "t" in outputs and outputs["t"].shape == ts.shape:
         outputs["t"] = ts
     outputs.update(extra)
     return Estimate(ts, q, frame, outputs, name, p)
