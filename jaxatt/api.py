@@ -368,11 +368,14 @@ def filter(
         "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
         "truth": None,
     }
+    # the gains in the arithmetic's type, as the scan uses them: a weakly typed gain (jnp.asarray(0.1), a float)
+    # then reuses the compiled program instead of compiling another
+    p_run = engine.cast_floats(p, dt_)
     if spec is None:
         fn = engine.compiled(
             obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
         )
-        out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p, item).records))
+        out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p_run, item).records))
         q = np.asarray(engine.estimate_q(out))
         extra: Dict[str, Any] = {}
     else:
@@ -389,7 +392,7 @@ def filter(
             keep_outputs=True,
         )
         fusion = engine.cast_floats(spec.fusion, dt_)
-        res = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], sm(p, fusion, item, np.array([n]))))
+        res = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], sm(p_run, fusion, item, np.array([n]))))
         out, q = res.forward, np.asarray(res.q)
         extra = {f"backward_{k}": np.asarray(v) for k, v in _as_dict(res.backward).items()}
         extra.update(

@@ -364,6 +364,32 @@ def test_float32_data_with_epoch_timestamps_keeps_its_times():
     np.testing.assert_array_equal(est.outputs["t"], t)
 
 
+def test_weakly_typed_gains_reuse_the_compiled_filter():
+    """Gains given as Python floats or weakly typed arrays (``jnp.asarray(0.1)``) run the program compiled for the
+    registered defaults (one jitted program, one cache entry), with the same estimates as the same gains typed."""
+    from jaxatt.observers import madgwick, registry
+
+    n = 120
+    rng = np.random.default_rng(3)
+    g = rng.normal(size=(n, 3)) * 0.01
+    a, m = np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([20.0, 0.0, -40.0], (n, 1))
+    e = registry.get("madgwick")
+    fn = engine.compiled(
+        registry.recorded_observer(e),
+        engine.Recorded(n - 1, False),
+        engine.records_of(jaxatt.api._pick_all, 1),
+        hold=e.hold,
+        obs_dtype=np.dtype(np.float64),
+    )
+    p = madgwick.default_params(dtype=jnp.float64)
+    typed = jaxatt.filter("madgwick", g, a, m, dt=0.01, params=p._replace(beta=jnp.asarray(0.2, jnp.float64)))
+    size = fn._cache_size()
+    for beta in (jnp.asarray(0.2), 0.2):
+        est = jaxatt.filter("madgwick", g, a, m, dt=0.01, params=p._replace(beta=beta))
+        np.testing.assert_array_equal(est.quat, typed.quat)
+    assert fn._cache_size() == size  # no program compiled for the weakly typed gains
+
+
 def test_non_finite_estimate_is_an_error_naming_the_sample():
     """Gains that make the user's filter diverge: FloatingPointError with the first bad sample and time."""
     rng = np.random.default_rng(1)
