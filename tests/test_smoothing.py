@@ -231,6 +231,20 @@ def test_broad_score_offline_is_the_metric_of_the_smoothed_estimate():
     np.testing.assert_allclose(sc.trials[tr.name].total_rmse_deg, ref["total_rmse_deg"], rtol=1e-6)
     causal = jaxatt.broad_score("robust", None, trials).trials[tr.name].total_rmse_deg
     assert sc.trials[tr.name].total_rmse_deg < causal
+    # a second call (other gains, weakly typed) reuses the cached smoother: the trials are its arguments
+    again = jaxatt.broad_score("robust", {"mag_delay": 0.001}, trials, offline=True)
+    assert again.trials[tr.name].total_rmse_deg != sc.trials[tr.name].total_rmse_deg
+    off = S.Offline()
+    smoother = S.compiled(  # the program broad_score runs (S.compiled is cached on its arguments)
+        registry.recorded_observer("robust"),
+        len(tr.samples.t) - 1,
+        hold="next",
+        obs_dtype=np.dtype(np.float64),
+        trust=off.trust,
+        heading=True,
+        seed_bias=off.seed_bias,
+    )
+    assert smoother._cache_size() == 1
 
 
 def test_filter_command_offline_with_timestamps(sim, tmp_path):
