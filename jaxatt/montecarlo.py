@@ -474,6 +474,9 @@ def monte_carlo(
     engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
+    # the gains in the observer's arithmetic, as the scan casts them: weakly typed gains (a float, jnp.asarray(0.1))
+    # reuse the program compiled for typed ones
+    params = engine.cast_floats(params, _dtypes(dtype)[0])
     mesh = _sharding.seed_mesh(devices)
     reporter = _progress.make_reporter(progress)
     # ordered host callbacks are not supported on several devices: there the reports may arrive out of order

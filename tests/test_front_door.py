@@ -391,6 +391,33 @@ def test_weakly_typed_gains_reuse_the_compiled_filter():
     assert scan._cache_size() == size  # without the cast: one more program per weak type
 
 
+def test_weakly_typed_gains_reuse_the_compiled_monte_carlo():
+    """The same for a Monte Carlo: a weakly typed gain runs the program compiled for the typed one, same numbers."""
+    from jaxatt import studies
+
+    s = studies.get("complementary").setup(duration=2.0)
+    kw = dict(runs=2, duration=2.0, dt=s.dt, seed=3, errors_fn=s.errors_fn)
+    typed = montecarlo.monte_carlo(s.scenario, s.observer, s.params._replace(k_i=jnp.asarray(0.3, jnp.float64)), **kw)
+    scan = montecarlo._simulation(  # the program monte_carlo runs (engine.compiled is cached on its arguments)
+        s.observer,
+        duration=2.0,
+        dt=s.dt,
+        errors_fn=s.errors_fn,
+        window_start=0.0,
+        hold="zoh",
+        trace_every=0,
+        trace_fn=None,
+        dtype=None,
+        windows=(),
+        init_params=None,
+    )[1]
+    size = scan._cache_size()
+    assert size >= 1
+    weak = montecarlo.monte_carlo(s.scenario, s.observer, s.params._replace(k_i=jnp.asarray(0.3)), **kw)
+    assert scan._cache_size() == size
+    np.testing.assert_array_equal(weak.per_run["mean_angle_error_deg"], typed.per_run["mean_angle_error_deg"])
+
+
 def test_non_finite_estimate_is_an_error_naming_the_sample():
     """Gains that make the user's filter diverge: FloatingPointError with the first bad sample and time."""
     rng = np.random.default_rng(1)
