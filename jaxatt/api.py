@@ -157,6 +157,16 @@ def _times(t, dt, n: int):
     return np.arange(n, dtype=np.float64) * dt, False
 
 
+def _run_length(n: int) -> int:
+    """The number of samples :func:`filter` scans for a recording of ``n``: ``n`` rounded up to a multiple of
+    2^(bit_length(n) - 4): 8 lengths per octave, so recordings of nearby lengths share one compiled program, for at
+    most 1/8 more samples computed (256 samples or fewer: ``n`` itself)."""
+    if n <= 256:
+        return n
+    q = 1 << (n.bit_length() - 4)
+    return -(-n // q) * q
+
+
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
     """(observer, params, entry or None, name) for a registered name / :class:`~jaxatt.observers.registry.Entry`
     (set up for recorded data, params None -> its shipped or default gains) or a user's :class:`Observer`
@@ -360,9 +370,16 @@ def filter(
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
-    cast = lambda a: None if a is None else jnp.asarray(a, dt_)  # noqa: E731
-    samples = ImuSample(jnp.asarray(ts, dt_), cast(gyr_a), cast(acc_a), cast(mag_a))
-    steps = np.diff(ts)
+    # the scan runs over a few more samples (the last one repeated, the extra estimates dropped): recordings of
+    # nearby lengths share one compiled program (estimate k of a causal scan depends on samples 0..k only)
+    n_run = _run_length(n)
+    t_run = np.concatenate([ts, ts[-1] + (ts[-1] - ts[-2]) * np.arange(1, n_run - n + 1)])
+
+    def run_input(a):
+        return None if a is None else jnp.asarray(np.concatenate([a, np.repeat(a[-1:], n_run - n, axis=0)]), dt_)
+
+    samples = ImuSample(jnp.asarray(t_run, dt_), run_input(gyr_a), run_input(acc_a), run_input(mag_a))
+    steps = np.diff(t_run)
     item = {
         "samples": jax.tree_util.tree_map(lambda a: a[None], samples),
         "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],
@@ -373,16 +390,16 @@ def filter(
     p_run = engine.cast_floats(p, dt_)
     if spec is None:
         fn = engine.compiled(
-            obs, engine.Recorded(n - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
+            obs, engine.Recorded(n_run - 1, per_step), engine.records_of(_pick_all, 1), hold=hold, obs_dtype=dt_
         )
-        out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], fn(None, p_run, item).records))
+        out = jax.device_get(jax.tree_util.tree_map(lambda a: a[0, :n], fn(None, p_run, item).records))
         q = np.asarray(engine.estimate_q(out))
         extra: Dict[str, Any] = {}
     else:
         heading = ("mag" in entry.needs) if entry is not None else mag_a is not None
         sm = smoothing.compiled(
             obs,
-            n - 1,
+            n_run - 1,
             per_step_dt=per_step,
             hold=hold,
             obs_dtype=dt_,
@@ -392,7 +409,8 @@ def filter(
             keep_outputs=True,
         )
         fusion = engine.cast_floats(spec.fusion, dt_)
-        res = jax.device_get(jax.tree_util.tree_map(lambda a: a[0], sm(p_run, fusion, item, np.array([n]))))
+        # the backward pass starts at sample n - 1 (the recording's end), not at the padding's
+        res = jax.device_get(jax.tree_util.tree_map(lambda a: a[0, :n], sm(p_run, fusion, item, np.array([n]))))
         out, q = res.forward, np.asarray(res.q)
         extra = {f"backward_{k}": np.asarray(v) for k, v in _as_dict(res.backward).items()}
         extra.update(

@@ -418,6 +418,36 @@ def test_weakly_typed_gains_reuse_the_compiled_monte_carlo():
     np.testing.assert_array_equal(weak.per_run["mean_angle_error_deg"], typed.per_run["mean_angle_error_deg"])
 
 
+def test_recordings_of_nearby_lengths_share_one_compiled_filter():
+    """jaxatt.filter scans a recording padded to a length shared with its neighbours (api._run_length): the
+    estimates of the first 3900 samples alone equal the first 3900 of 4001 (a causal scan, the padding
+    dropped), and nothing is compiled for the second length. (The offline estimate of a padded recording equals
+    the smoother's on the recording alone: tests/test_smoothing.py, broad_score against filter.)"""
+    from jaxatt.observers import registry
+
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.05, mag_noise_std=0.3)
+    samples, _ = montecarlo.simulate_log(scn, duration=40.0, dt=0.01, seed=4)  # the length of the test above
+    g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
+    n, short = 4001, 3900
+    assert jaxatt.api._run_length(n) == jaxatt.api._run_length(short) == 4096
+    e = registry.get("robust")
+    scan = engine.compiled(
+        registry.recorded_observer(e),
+        engine.Recorded(4095, False),
+        engine.records_of(jaxatt.api._pick_all, 1),
+        hold=e.hold,
+        obs_dtype=np.dtype(np.float64),
+    )
+    full = jaxatt.filter("robust", g[:n], a[:n], m[:n], dt=0.01)
+    size = scan._cache_size()
+    assert size >= 1
+    part = jaxatt.filter("robust", g[:short], a[:short], m[:short], dt=0.01)
+    assert scan._cache_size() == size
+    assert part.quat.shape == (short, 4) and part.t.shape == (short,)
+    np.testing.assert_array_equal(part.quat, full.quat[:short])
+    np.testing.assert_array_equal(part.outputs["bias"], full.outputs["bias"][:short])
+
+
 def test_non_finite_estimate_is_an_error_naming_the_sample():
     """Gains that make the user's filter diverge: FloatingPointError with the first bad sample and time."""
     rng = np.random.default_rng(1)
