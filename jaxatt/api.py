@@ -157,13 +157,18 @@ def _times(t, dt, n: int):
     return np.arange(n, dtype=np.float64) * dt, False
 
 
+#: Lengths per octave that :func:`filter` pads a recording to (one compiled program each). A compile (~1-2 s)
+#: costs as much as scanning ~1e6 samples, so the padding (at most 1/LENGTHS_PER_OCTAVE more samples) is cheap:
+#: 10 recordings of 3,000-6,000 samples (robust, float32) took 19.2 s with no padding, 11.6 s with 4 (2: 8.0 s).
+LENGTHS_PER_OCTAVE = 4
+
+
 def _run_length(n: int) -> int:
-    """The number of samples :func:`filter` scans for a recording of ``n``: ``n`` rounded up to a multiple of
-    2^(bit_length(n) - 4): 8 lengths per octave, so recordings of nearby lengths share one compiled program, for at
-    most 1/8 more samples computed (256 samples or fewer: ``n`` itself)."""
+    """The number of samples :func:`filter` scans for a recording of ``n``: ``n`` rounded up to the next of
+    :data:`LENGTHS_PER_OCTAVE` evenly spaced lengths per octave (256 samples or fewer: ``n`` itself)."""
     if n <= 256:
         return n
-    q = 1 << (n.bit_length() - 4)
+    q = 1 << (n.bit_length() - 1 - LENGTHS_PER_OCTAVE.bit_length() + 1)
     return -(-n // q) * q
 
 
