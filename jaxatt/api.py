@@ -551,22 +551,8 @@ def broad_score(
         res = B.score(obs, p_run, trials, hold=hold, dtype=dt_)
     else:
         heading = ("mag" in entry.needs) if entry is not None else True
-        padded = B.pad_trials(trials)
-        item = B.batch_item(padded, dt_)
-        # the cached smoother (trials as arguments, not constants): a second call with trials of the same shapes
-        # compiles nothing
-        sm = smoothing.compiled(
-            obs,
-            int(padded.samples.t.shape[1]) - 1,
-            hold=hold,
-            obs_dtype=dt_,
-            trust=spec.trust,
-            heading=heading,
-            seed_bias=spec.seed_bias,
-        )
-        q = sm(p_run, engine.cast_floats(spec.fusion, dt_), item, jnp.asarray(padded.lengths)).q
-        truth = item["truth"]
-        summary = jax.device_get(jax.jit(B.broad_errors_jax)(q.astype(truth["q"].dtype), truth["q"], truth["use"]))
+        metric = smoothing.broad_metric_fn(obs, trials, hold=hold, dtype=dt_, offline=spec, heading=heading)
+        summary = jax.device_get(metric(p_run, engine.cast_floats(spec.fusion, dt_)))  # not jitted: see there
         res = {tr.name: {m: float(summary[m][i]) for m in B.METRICS} for i, tr in enumerate(trials)}
         name = f"{name}+offline"
     wall = time.perf_counter() - t0

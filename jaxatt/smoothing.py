@@ -627,7 +627,10 @@ def broad_metric_fn(
     padded = broad.pad_trials(trials)
     item = broad.batch_item(padded, dtype)
     lengths = jnp.asarray(padded.lengths)
-    fn = smoother_fn(
+    # the cached, jitted smoother with the trials as its arguments: called as it is (not under an outer jit, which
+    # would make the trials constants of a new program), a second call with trials of the same shapes compiles
+    # nothing
+    fn = compiled(
         observer,
         int(padded.samples.t.shape[1]) - 1,
         hold=hold,

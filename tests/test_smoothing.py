@@ -243,6 +243,7 @@ def test_broad_score_offline_is_the_metric_of_the_smoothed_estimate():
         trust=off.trust,
         heading=True,
         seed_bias=off.seed_bias,
+        segment=0,
     )
     assert smoother._cache_size() == 1
 
