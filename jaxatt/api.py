@@ -157,9 +157,10 @@ def _times(t, dt, n: int):
     return np.arange(n, dtype=np.float64) * dt, False
 
 
-#: Lengths per octave that :func:`filter` pads a recording to (one compiled program each). A compile (~1-2 s)
-#: costs as much as scanning ~1e6 samples, so the padding (at most 1/LENGTHS_PER_OCTAVE more samples) is cheap:
-#: 10 recordings of 3,000-6,000 samples (robust, float32) took 19.2 s with no padding, 11.6 s with 4 (2: 8.0 s).
+#: Lengths per octave (a power of two) that :func:`filter` pads a recording to (one compiled program each). A
+#: compile (~1-2 s) costs as much as scanning ~1e6 samples, so the padding (at most 1/LENGTHS_PER_OCTAVE more
+#: samples) is cheap: 10 recordings of 3,000-6,000 samples (robust, float32) took 19.2 s with no padding, 11.6 s
+#: with 4 (2: 8.0 s).
 LENGTHS_PER_OCTAVE = 4
 
 
@@ -168,7 +169,7 @@ def _run_length(n: int) -> int:
     :data:`LENGTHS_PER_OCTAVE` evenly spaced lengths per octave (256 samples or fewer: ``n`` itself)."""
     if n <= 256:
         return n
-    q = 1 << (n.bit_length() - 1 - LENGTHS_PER_OCTAVE.bit_length() + 1)
+    q = 1 << (n.bit_length() - LENGTHS_PER_OCTAVE.bit_length())  # (2^(bits - 1) <= n) / LENGTHS_PER_OCTAVE
     return -(-n // q) * q
 
 
