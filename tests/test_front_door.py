@@ -351,6 +351,21 @@ def test_a_degenerate_first_sample_still_starts_on_so3():
     np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
 
 
+def _filter_scan(name: str, n_run: int):
+    """The compiled scan jaxatt.filter runs for registered observer ``name`` over ``n_run`` float64 samples at a
+    constant dt (``engine.compiled`` is cached on its arguments, so this is the same jitted object)."""
+    from jaxatt.observers import registry
+
+    e = registry.get(name)
+    return engine.compiled(
+        registry.recorded_observer(e),
+        engine.Recorded(n_run - 1, False),
+        engine.records_of(jaxatt.api._pick_all, 1),
+        hold=e.hold,
+        obs_dtype=np.dtype(np.float64),
+    )
+
+
 def test_float32_data_with_epoch_timestamps_keeps_its_times():
     """float32 sensors stamped with Unix times (1.7e9 s): the filter runs in float32, but the times it returns, as
     ``t`` and as the ``t`` output, are the given float64 stamps (float32 rounds them to 128 s)."""
@@ -367,20 +382,13 @@ def test_float32_data_with_epoch_timestamps_keeps_its_times():
 def test_weakly_typed_gains_reuse_the_compiled_filter():
     """Gains given as Python floats or weakly typed arrays (``jnp.asarray(0.1)``) run the program compiled for the
     same gains typed (no new entry in the compiled scan's cache), with the same estimates."""
-    from jaxatt.observers import madgwick, registry
+    from jaxatt.observers import madgwick
 
     n = 120
     rng = np.random.default_rng(3)
     g = rng.normal(size=(n, 3)) * 0.01
     a, m = np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([20.0, 0.0, -40.0], (n, 1))
-    e = registry.get("madgwick")
-    scan = engine.compiled(  # the program jaxatt.filter runs (engine.compiled is cached on its arguments)
-        registry.recorded_observer(e),
-        engine.Recorded(n - 1, False),
-        engine.records_of(jaxatt.api._pick_all, 1),
-        hold=e.hold,
-        obs_dtype=np.dtype(np.float64),
-    )
+    scan = _filter_scan("madgwick", n)
     p = madgwick.default_params(dtype=jnp.float64)
     typed = jaxatt.filter("madgwick", g, a, m, dt=0.01, params=p._replace(beta=jnp.asarray(0.2, jnp.float64)))
     size = scan._cache_size()
@@ -423,21 +431,12 @@ def test_recordings_of_nearby_lengths_share_one_compiled_filter():
     estimates of the first 3900 samples alone equal the first 3900 of 4001 (a causal scan, the padding
     dropped), and nothing is compiled for the second length. (The offline estimate of a padded recording equals
     the smoother's on the recording alone: tests/test_smoothing.py, broad_score against filter.)"""
-    from jaxatt.observers import registry
-
     scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.05, mag_noise_std=0.3)
     samples, _ = montecarlo.simulate_log(scn, duration=40.0, dt=0.01, seed=4)  # the length of the test above
     g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
     n, short = 4001, 3900
     assert jaxatt.api._run_length(n) == jaxatt.api._run_length(short) == 4096
-    e = registry.get("robust")
-    scan = engine.compiled(
-        registry.recorded_observer(e),
-        engine.Recorded(4095, False),
-        engine.records_of(jaxatt.api._pick_all, 1),
-        hold=e.hold,
-        obs_dtype=np.dtype(np.float64),
-    )
+    scan = _filter_scan("robust", 4096)
     full = jaxatt.filter("robust", g[:n], a[:n], m[:n], dt=0.01)
     size = scan._cache_size()
     assert size >= 1

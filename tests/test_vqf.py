@@ -106,9 +106,8 @@ def test_matches_vqf_package_on_every_broad_trial(batch, mode):
     if mode == "9d":
         # The smooth relaxation (smooth > 0) tends to the exact filter: close at 1e-3, equal at 1e-7.
         for temp, bound in SMOOTH_BOUNDS:
-            out_s = run_batch(
-                mode, p._replace(smooth=jnp.asarray(temp, p.smooth.dtype)), s, dt
-            )  # same type: no recompile
+            # the default's type (a weakly typed temperature would compile the 9D scan again)
+            out_s = run_batch(mode, p._replace(smooth=jnp.asarray(temp, p.smooth.dtype)), s, dt)
             d = max(float(qangle(np.asarray(out_s.q[i, :n]), q[i, :n]).max()) for i, n in enumerate(lens))
             print(f"smooth={temp}: max angle to the exact filter {d:.3g} rad")
             assert d <= bound, (temp, d)
