@@ -32,7 +32,7 @@ __all__ = ["main"]
 
 SIMULATE_OBSERVERS = ("batista-ges", "batista-so3", "complementary")
 PAPER_STUDIES = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3", "nlio-case4", "nlio-simb")
-TUNABLE_STUDIES = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3")
+TUNABLE_STUDIES = ("batista-ges", "batista-so3", "complementary", "nlio-case1", "nlio-case2", "nlio-case3")
 SCENARIOS = ("rotating", "switching", "constant", "two-constant", "body-fixed")
 
 

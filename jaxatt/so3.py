@@ -15,6 +15,7 @@ gimbal lock, where they are not defined).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -34,6 +35,7 @@ __all__ = [
     "quat_canonical",
     "nearest_rotation",
     "polar_newton",
+    "polar_tangent",
     "orthogonality_error",
     "angle_error",
     "angle_of",
@@ -235,13 +237,20 @@ def nearest_rotation(m: jax.Array) -> jax.Array:
 def _nearest_rotation_jvp(primals, tangents):
     (m,), (dm,) = primals, tangents
     r = nearest_rotation(m)
-    # m = r h with h symmetric; d r = r S(w) where (tr(h) I - h) w = vex(r^T dm - dm^T r) * 2 / 2.
+    return r, polar_tangent(r, m, dm)
+
+
+def polar_tangent(r: jax.Array, m: jax.Array, dm: jax.Array) -> jax.Array:
+    """Derivative of the orthogonal polar factor ``r`` of ``m`` (m = r h, h symmetric positive definite) along
+    ``dm``: d r = r S(w) with (tr(h) I - h) w = 2 vex(r^T dm). Finite at rotations, where the SVD's own
+    derivative divides by zero between equal singular values; the 3x3 solve is written out (cofactors), so it
+    fuses into the step of an observer."""
     h = mm(jnp.swapaxes(r, -1, -2), m)
     h = 0.5 * (h + jnp.swapaxes(h, -1, -2))
     a = jnp.trace(h, axis1=-2, axis2=-1)[..., None, None] * jnp.eye(3, dtype=m.dtype) - h
     rhs = 2.0 * vex(mm(jnp.swapaxes(r, -1, -2), dm))
-    w = jnp.linalg.solve(a, rhs[..., None])[..., 0]
-    return r, mm(r, skew(w))
+    w = mv(cofactor(a), rhs) / det3(a)[..., None]  # a symmetric: a^-1 = cofactor(a) / det(a)
+    return mm(r, skew(w))
 
 
 def cofactor(m: jax.Array) -> jax.Array:
@@ -250,18 +259,28 @@ def cofactor(m: jax.Array) -> jax.Array:
     return jnp.stack([cross(r2, r3), cross(r3, r1), cross(r1, r2)], axis=-2)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def polar_newton(m: jax.Array, iterations: int = 5) -> jax.Array:
     """Orthogonal polar factor of a non-singular ``m`` by Newton's iteration X <- (X + X^-T) / 2.
 
     X^-T is the cofactor matrix over the determinant (three cross products), so an iteration costs about a
     third of a 3x3 product. Singular values map as s -> (s + 1/s)/2: quadratic convergence, five iterations
     reach float64 rounding for singular values in [0.7, 1.3] (||m^T m - I||_F <= 0.5, the projection region
-    of Theorem 3 in batista2019-ges). Equals :func:`nearest_rotation` when det(m) > 0. Differentiable.
+    of Theorem 3 in batista2019-ges). Equals :func:`nearest_rotation` when det(m) > 0. Its derivative is the
+    polar factor's (:func:`polar_tangent`), not the iteration's: the same where the iteration has converged,
+    and a gradient then keeps no intermediate of the iterations.
     """
     x = m
     for _ in range(iterations):
         x = 0.5 * (x + cofactor(x) / det3(x)[..., None, None])
     return x
+
+
+@polar_newton.defjvp
+def _polar_newton_jvp(iterations, primals, tangents):
+    (m,), (dm,) = primals, tangents
+    r = polar_newton(m, iterations)
+    return r, polar_tangent(r, m, dm)
 
 
 def det3(r: jax.Array) -> jax.Array:

@@ -5,10 +5,10 @@ process on one device; only process 0 writes files.
 Tolerance: float64 and the same per-run arithmetic on both sides; what differs is the order of the sums over
 runs (the loss is the pmean of two per-device means instead of one mean over 4 runs) and XLA's vectorisation of a
 batch of 2 runs per device instead of 4 or 5 (different rounding of the same operations), ~1e-16 relative per
-operation. Over 1200 steps of a stable observer (the Monte Carlo: the complementary observer with noise; the fit:
-batista-so3) and 2 Adam steps that stays far below 1e-9 (relative), while a real fault (a run computed twice or
-dropped, padding kept, a loss summed instead of averaged, process 1's gradient ignored) changes the numbers
-by 1e-3 or more.
+operation. Over 1200 steps of a stable observer (the complementary observer with noise and its gyro-bias
+integrator, in the Monte Carlo and in the fit) and 2 Adam steps that stays far below 1e-9 (relative), while a real
+fault (a run computed twice or dropped, padding kept, a loss summed instead of averaged, process 1's gradient
+ignored) changes the numbers by 1e-3 or more.
 
 The processes are started with a timeout so that a hung collective fails the test instead of hanging CI. When the
 processes cannot join (no gloo on this platform, no free port) the test is skipped, except under ``CI=true``,
@@ -68,9 +68,10 @@ WORKER = textwrap.dedent(
     out["mc"] = {k: np.asarray(v).tolist() for k, v in res.per_run.items()}
     out["trace"] = np.asarray(res.traces["angle_error_deg"]).tolist()
     t1 = time.perf_counter()
-    # the fit: batista-so3 (a tunable study; its gradient compiles faster than batista-ges's)
-    fit = jaxatt.fit(None, None, "batista-so3", steps=2, train_runs=4, batch=4, val_runs=0,
-                     config={"duration": 12.0}, out=os.path.join(out_dir, f"gains-{pid}.json"))
+    # the fit: the same complementary set-up (a tunable study whose gradient compiles in a fraction of the
+    # Batista observers' time)
+    fit = jaxatt.fit(None, None, "complementary", steps=2, train_runs=4, batch=4, val_runs=0,
+                     config=cfg, out=os.path.join(out_dir, f"gains-{pid}.json"))
     out["fit_s"] = time.perf_counter() - t1
     out["fit_loss"] = [h.get("train_loss") for h in fit.history]
     out["fit_best"] = fit.best_loss
@@ -189,7 +190,7 @@ def test_two_processes_equal_one_process(tmp_path):
     trace_rel = max(rel(r["trace"], one["trace"]) for r in (r0, r1))
     fit_rel = max(
         [rel(r0["fit_loss"], one["fit_loss"]), rel(r0["fit_best"], one["fit_best"])]
-        + [rel(r0["fit_params"][k], one["fit_params"][k]) for k in one["fit_params"]]
+        + [rel(r0["fit_params"][k], one["fit_params"][k]) for k in one["fit_params"] if np.size(one["fit_params"][k])]
     )
     print(
         f"\nwall {wall:.1f} s for both launches; 2 processes: MC {r0['mc_s']:.1f} s, fit {r0['fit_s']:.1f} s; "

@@ -109,6 +109,30 @@ def test_rotation_of_equals_the_svd_projection():
     np.testing.assert_allclose(r[good], np.asarray(so3.nearest_rotation(jnp.asarray(m[good]))), atol=1e-9)
 
 
+def test_rotation_of_derivative_matches_finite_differences():
+    """rotation_of's derivative (the polar factor's where Newton converged, Gram-Schmidt's elsewhere) equals
+    central differences of its values on both branches, forward and reverse; reverse mode is finite on the
+    fallback branch."""
+    rng = np.random.default_rng(5)
+    near = random_rotation(rng) @ np.diag([1.2, 0.9, 0.7]) @ random_rotation(rng) * 3.0  # det > 0: Newton
+    flipped = random_rotation(rng) @ np.diag([1.2, 0.9, -0.7]) @ random_rotation(rng)  # det < 0: Gram-Schmidt
+    f = jax.jit(nlio.rotation_of)
+    for m in (near, flipped, np.eye(3)):
+        jac = np.asarray(jax.jacfwd(nlio.rotation_of)(jnp.asarray(m)))
+        h = 1e-6
+        fd = np.stack(
+            [
+                (np.asarray(f(jnp.asarray(m + h * e))) - np.asarray(f(jnp.asarray(m - h * e)))) / (2 * h)
+                for e in np.eye(9).reshape(9, 3, 3)
+            ],
+            axis=-1,
+        ).reshape(3, 3, 3, 3)
+        np.testing.assert_allclose(jac, fd, atol=1e-8)
+        jr = np.asarray(jax.jacrev(nlio.rotation_of)(jnp.asarray(m)))
+        assert np.all(np.isfinite(jr))
+        np.testing.assert_allclose(jr, jac, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Lemma 1 / Theorem 1: global convergence (noise-free), projection bound
 # ---------------------------------------------------------------------------------------------------------

@@ -361,11 +361,7 @@ def _gram_schmidt(m):
     return jnp.stack([e1, e2, so3.cross(e1, e2)], axis=-1)
 
 
-def rotation_of(m, iterations: int = 10):
-    """The rotation nearest to ``m`` (Frobenius) for det(m) > 0: Newton's polar iteration with Frobenius-norm
-    scaling (X <- (g X + X^-T / g) / 2, g = sqrt(|X^-1| / |X|)), ~30x cheaper than an SVD on CPU. Where
-    det(m) <= 0 or the iteration has not converged (nearly singular m: only during large transients of a lifted
-    observer) the Gram-Schmidt rotation of m's columns is returned instead."""
+def _rotation_and_converged(m, iterations: int):
     eye = jnp.eye(3, dtype=m.dtype)
     scale = jnp.sqrt(jnp.sum(m * m, axis=(-2, -1)) / 3.0)[..., None, None]
     mn = m / jnp.where(scale > 0, scale, 1.0)
@@ -377,7 +373,30 @@ def rotation_of(m, iterations: int = 10):
         x = 0.5 * (g * x + xit / g)
     tol = max(1e-8, 1e3 * float(jnp.finfo(m.dtype).eps))  # converged (float64: 1e-8; float32: 1.2e-4)
     ok = ok & (so3.orthogonality_error(x) < tol)
-    return jnp.where(ok[..., None, None], x, _gram_schmidt(m))
+    return jnp.where(ok[..., None, None], x, _gram_schmidt(m)), ok
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def rotation_of(m, iterations: int = 10):
+    """The rotation nearest to ``m`` (Frobenius) for det(m) > 0: Newton's polar iteration with Frobenius-norm
+    scaling (X <- (g X + X^-T / g) / 2, g = sqrt(|X^-1| / |X|)), ~30x cheaper than an SVD on CPU. Where
+    det(m) <= 0 or the iteration has not converged (nearly singular m: only during large transients of a lifted
+    observer) the Gram-Schmidt rotation of m's columns is returned instead. The derivative is the polar
+    factor's (:func:`jaxatt.so3.polar_tangent`) where the iteration converged, Gram-Schmidt's elsewhere: a
+    gradient keeps no intermediate of the iterations."""
+    return _rotation_and_converged(m, iterations)[0]
+
+
+@rotation_of.defjvp
+def _rotation_of_jvp(iterations, primals, tangents):
+    (m,), (dm,) = primals, tangents
+    r, ok = _rotation_and_converged(m, iterations)
+    ok3 = ok[..., None, None]
+    eye = jnp.eye(3, dtype=m.dtype)
+    # each branch at a safe point where the other one is taken (no 0 * inf in a gradient)
+    polar = so3.polar_tangent(jnp.where(ok3, r, eye), jnp.where(ok3, m, eye), dm)
+    _, gram_schmidt = jax.jvp(_gram_schmidt, (jnp.where(ok3, eye, m),), (dm,))
+    return r, jnp.where(ok3, polar, gram_schmidt)
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ NAMES = tuple(_MODULES)
 #: The studies with published numbers (``jaxatt reproduce``).
 PAPER_STUDIES = tuple(n for n in NAMES if n != "complementary")
 #: The studies ``jaxatt tune`` can tune (their tuned observer has declared gains and the study a loss).
-TUNABLE = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3")
+TUNABLE = ("batista-ges", "batista-so3", "complementary", "nlio-case1", "nlio-case2", "nlio-case3")
 
 
 def get(name: str) -> Study:
