@@ -214,6 +214,9 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
 
 
 def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
+    from jaxatt import studies
+
+    assert cli.TUNABLE_STUDIES == studies.TUNABLE  # the command's choices (kept without importing jax for --help)
     gains = tmp_path / "g.json"
     # no step: the command's plumbing (the gradient through the scan is tested in test_tune.py)
     rc = cli.main(

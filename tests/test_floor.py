@@ -29,6 +29,7 @@ def _skew(v):
 def _truth_numpy(rate, r0, dt, n, sub=40):
     """R(t) on the grid t = j dt / sub (j = 0 ... n sub) by RK4 on dR/dt = R S(omega(t)), re-orthonormalised."""
     h = dt / sub
+    rate = jax.jit(rate)  # one program for the ~2000 calls below (eagerly, each jnp operation compiles)
     rs = [np.asarray(r0, float)]
     r = rs[0]
     for j in range(n * sub):
