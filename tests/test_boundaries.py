@@ -506,14 +506,18 @@ def test_sigint_in_an_overwriting_tune_keeps_the_finished_gains_file(tmp_path):
     shipped = json.loads((REPO / "jaxatt" / "data" / "gains" / "batista-so3.json").read_text())
     gains.write_text(json.dumps({**shipped, "status": "done"}))  # a finished fit
     finished = gains.read_bytes()
-    tune = ["tune", "--experiment", "batista-so3", "--train-runs", "2", "--val-runs", "0", "--duration", "6"]
+    # the complementary study: the same command, a gradient that compiles in a fraction of batista-so3's time
+    tune = ["tune", "--experiment", "complementary", "--train-runs", "2", "--val-runs", "0", "--duration", "6"]
     p = _cli(*tune, "--steps", "500", "--out", str(gains), "--overwrite", "--progress")
     _wait_for(p, r"step +1/500")
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130 and "Traceback" not in err, err[-800:]
     assert gains.read_bytes() == finished, "the finished gains file was replaced by an unfinished fit"
-    assert json.loads((tmp_path / "g.json.partial.json").read_text())["status"] == "interrupted"
+    partial = json.loads((tmp_path / "g.json.partial.json").read_text())
+    assert partial["status"] == "interrupted"
+    # the study's default k_i = 0 (no bias integrator) is a switched-off term: the fit keeps it off
+    assert partial["gains"]["k_i"]["value"] == 0.0 and partial["settings"]["config"]["k_i"] == 0.0
 
 
 def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues_it(files, tmp_path):

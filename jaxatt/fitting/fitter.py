@@ -479,6 +479,17 @@ class FitResult(NamedTuple):
 
 def _parametrization(entry, params, *, tune, freeze, masks, method, transforms):
     if entry is not None:
+        if tune is None:  # a positive gain at exactly 0 is a term switched off (k_i = 0: no bias integrator);
+            # the log map cannot leave 0, so a default fit keeps it off (naming it in ``tune`` is an error)
+            off = [
+                g.field
+                for g in entry.gains
+                if g.tuned
+                and g.constraint == "positive"
+                and np.size(getattr(params, g.field))
+                and np.all(np.asarray(getattr(params, g.field)) == 0)
+            ]
+            freeze = tuple(freeze) + tuple(f for f in off if f not in freeze)
         return P.for_gains(
             entry.gains, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms
         ).bind(params)

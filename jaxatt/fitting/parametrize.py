@@ -433,7 +433,10 @@ class Parametrization:
         for f, tr in self.transforms.items():
             v = np.asarray(getattr(params, f), float)
             trs[f] = tr.bind(v)
-            th0[f] = np.asarray(trs[f].inverse(v), float)
+            try:
+                th0[f] = np.asarray(trs[f].inverse(v), float)
+            except ValueError as e:  # name the gain (k_i = 0 is a switched-off term: freeze it or start it > 0)
+                raise ValueError(f"params.{f}: {e}") from None
             m = self.masks.get(f)
             if m is None and isinstance(tr, SPD) and tr.structure == "diagonal":
                 m = SPD.diagonal_mask(v.shape[0])
