@@ -243,8 +243,8 @@ def test_tuning_from_a_poor_gain_lowers_held_out_loss(so3_problem, tmp_path):
     """batista-so3 from alpha3 |I_m|^2 = 0.002 1/s (10 x below the paper's; alpha4 at 1 % so that the
     still unconverged v^ does not steer the attitude): 8 Adam steps on 2 training runs lower the loss of 2
     other seeds; the gains file is rewritten as the loop goes and loads back into the Params; an interrupted
-    run keeps the best gains found so far. The other gains are frozen by masks (so the gradient program of
-    the FD test is reused: no compile here)."""
+    run keeps the best gains found so far. The other gains are frozen by masks; the three fits build the same
+    objective program, so the later ones reuse it."""
     prob = so3_problem
     poor = lambda p: so3_params(p)._replace(alpha3=0.1 * p.alpha3, alpha4=0.01 * p.alpha4)  # noqa: E731
     frozen = {"alpha0": False, "alpha1": False, "alpha2": False, "alpha4": False}
