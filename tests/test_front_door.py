@@ -153,21 +153,27 @@ def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log():
     assert res.per_run["mean_angle_error_deg"][0] == pytest.approx(err[window].mean(), rel=1e-9)
 
 
-def test_registered_observers_through_the_front_door():
-    """Every observer set up for recorded data runs through jaxatt.filter on a simulated log and converges near the
-    truth; the frame argument rotates the estimate (NED = fixed rotation of ENU)."""
+@pytest.fixture(scope="module")
+def quiet_log():
     scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-4, acc_noise_std=0.01, mag_noise_std=0.05, gyro_bias=(0, 0, 0))
     samples, truth = montecarlo.simulate_log(scn, duration=40.0, dt=0.01)
-    r_true = np.asarray(truth.r)
-    for name in jaxatt.observers.registry.names(recorded=True):
-        est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
-        err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
-        assert np.all(np.isfinite(est.quat)), name
-        assert err[-500:].mean() < 3.0, (name, err[-500:].mean())
-    ned = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01, frame="NED")
-    enu = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01)
-    c = jaxatt.frames.frame_rotation("NED", "ENU")
-    np.testing.assert_allclose(ned.rotation[-1], c @ enu.rotation[-1], atol=1e-12)
+    return samples, np.asarray(truth.r)
+
+
+# one test per observer: each compiles its own filter, and xdist spreads them over the workers
+@pytest.mark.parametrize("name", jaxatt.observers.registry.names(recorded=True))
+def test_registered_observers_through_the_front_door(name, quiet_log):
+    """Every observer set up for recorded data runs through jaxatt.filter on a simulated log and converges near the
+    truth; the frame argument rotates the estimate (NED = fixed rotation of ENU)."""
+    samples, r_true = quiet_log
+    est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
+    err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
+    assert np.all(np.isfinite(est.quat)), name
+    assert err[-500:].mean() < 3.0, (name, err[-500:].mean())
+    if name == "robust":
+        ned = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01, frame="NED")
+        c = jaxatt.frames.frame_rotation("NED", "ENU")
+        np.testing.assert_allclose(ned.rotation[-1], c @ est.rotation[-1], atol=1e-12)
 
 
 @pytest.mark.parametrize(
