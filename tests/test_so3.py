@@ -114,6 +114,22 @@ def test_skew_cross_and_vex_inverse(rng):
     np.testing.assert_allclose(s, -np.swapaxes(s, 1, 2), atol=0)
     np.testing.assert_allclose(np.asarray(J.vex(jnp.asarray(s))), x, atol=1e-15)
     np.testing.assert_allclose(np.asarray(J.cross(jnp.asarray(x), jnp.asarray(y))), np.cross(x, y), atol=1e-14)
+    # the Levi-Civita contraction equals the component formula to one rounding of each component (the other
+    # terms are exact zeros; XLA may fuse a product into the sum), in float64 and float32, jitted or not; S(x)
+    # holds x's components exactly
+    for dt in (np.float64, np.float32):
+        a, b = x.astype(dt), y.astype(dt)
+        terms = [(1, 2), (2, 0), (0, 1)]
+        comp = np.stack([a[:, j] * b[:, k] - a[:, k] * b[:, j] for j, k in terms], axis=-1)
+        scale = np.stack([np.abs(a[:, j] * b[:, k]) + np.abs(a[:, k] * b[:, j]) for j, k in terms], axis=-1)
+        for f in (J.cross, jax.jit(J.cross)):
+            c = np.asarray(f(jnp.asarray(a), jnp.asarray(b)))
+            assert c.dtype == dt
+            assert np.all(np.abs(c - comp) <= np.finfo(dt).eps * scale), np.max(np.abs(c - comp) / scale)
+        sk = np.asarray(J.skew(jnp.asarray(a)))
+        np.testing.assert_array_equal(sk[:, [2, 0, 1], [1, 2, 0]], a)
+        np.testing.assert_array_equal(sk[:, [1, 2, 0], [2, 0, 1]], -a)
+        np.testing.assert_array_equal(sk[:, [0, 1, 2], [0, 1, 2]], 0.0)
     # vex ignores the symmetric part
     sym = rng.standard_normal((50, 3, 3))
     sym = sym + np.swapaxes(sym, 1, 2)
