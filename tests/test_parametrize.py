@@ -137,6 +137,23 @@ def test_freeze_only_and_unknown_fields():
         P.Parametrization({"nope": P.Positive()}).bind(ges_params())
 
 
+def test_a_gain_at_zero_is_kept_off_by_a_default_fit_and_named_when_asked_for():
+    """complementary's k_i = 0 (no bias integrator): the fitter's default parametrization leaves it out (a log map
+    cannot leave 0); asking to tune it is one error naming the gain."""
+    from jaxatt import studies
+    from jaxatt.fitting import fitter
+
+    s = studies.get("complementary").setup(duration=1.0)
+    assert float(s.params.k_i) == 0.0
+    e = registry.get(s.entry)
+    kw = dict(freeze=(), masks=None, method=None, transforms=None)
+    bound = fitter._parametrization(e, s.params, tune=None, **kw)
+    assert "k_i" not in bound.transforms and "k" in bound.transforms
+    with pytest.raises(ValueError, match=r"^params\.k_i: a positive gain must be finite and > 0") as info:
+        fitter._parametrization(e, s.params, tune=["k", "k_i"], **kw)
+    assert "\n" not in str(info.value)
+
+
 class MyParams(NamedTuple):
     k: jnp.ndarray
     tau: jnp.ndarray
