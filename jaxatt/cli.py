@@ -613,17 +613,39 @@ def _fit_status(res) -> int:
     return 0
 
 
+#: study settings that follow the evaluation's length, not the gains file (the steady window scales with it)
+_LENGTH_SETTINGS = ("duration", "window_start")
+
+
+def _evaluation_config(args, gains) -> dict:
+    """Config overrides of ``jaxatt evaluate``: the set-up the gains were tuned on (the gains file's
+    ``settings.config``: scenario, noise, form, ...) at the study's own duration, or ``--duration``."""
+    stored = (gains or {}).get("settings", {}).get("config") or {}
+    if (gains or {}).get("study") not in (None, args.experiment) or not isinstance(stored, dict):
+        stored = {}  # a gains file of another study is refused after the set-up, with its own message
+    over = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k not in _LENGTH_SETTINGS}
+    if args.duration is not None:
+        over["duration"] = args.duration
+    return over
+
+
 def _evaluate(args) -> int:
     from . import io, studies
     from .fitting import gainsfile
 
     study = studies.get(args.experiment)
     io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains})
-    cfg = study.config(**({"duration": args.duration} if args.duration is not None else {}))
+    d = gainsfile.read(args.gains) if args.gains else None
+    try:
+        cfg = study.config(**_evaluation_config(args, d))
+    except ValueError as e:
+        raise UserError(f"--gains {args.gains}: the set-up its gains were tuned on: {e}" if d else str(e)) from None
     s = study.setup(**{k: v for k, v in cfg._asdict().items()})
     params, source, warn = s.params, "paper", None
-    if args.gains:
-        d = gainsfile.read(args.gains)
+    if d is not None:
+        note = gainsfile.unfinished_note(d, args.gains)
+        if note:
+            warnings.warn(note, stacklevel=1)
         if d.get("study") not in (None, study.name) or d["observer"] != s.entry:
             raise UserError(
                 f"--gains {args.gains}: holds gains of {d['observer']!r} "

@@ -51,17 +51,45 @@ from jaxatt.fitting import varfree as V
 from jaxatt.observers import batista_ges as ges
 
 RESULTS = HERE / "results"
+GAINS_DIR = HERE.parent / "jaxatt" / "data" / "gains"
+#: which study ``--study`` tunes (batista-ges unless said); the paths below follow it (:func:`_use`)
+STUDY = "batista-ges"
 OUT = RESULTS / "varfree-tune-batista-ges.json"
 GAINS_OUT = RESULTS / "gains-batista-ges-varfree.json"
 #: the L-BFGS stage: from the Adam stage's best gains (``--optimizer lbfgs``)
 GAINS_LBFGS = RESULTS / "gains-batista-ges-varfree-lbfgs.json"
-GROWING = HERE.parent / "jaxatt" / "data" / "gains" / "batista-ges-growing.json"
+#: the shipped gains the tuned ones are compared with (``None``: none)
+GROWING = GAINS_DIR / "batista-ges-growing.json"
 #: the shipped gradient-tuned gains (``--phase ship``: the L-BFGS stage's file without its resume state)
-SHIPPED = HERE.parent / "jaxatt" / "data" / "gains" / "batista-ges-gradient.json"
+SHIPPED = GAINS_DIR / "batista-ges-gradient.json"
+
+
+def _use(study: str) -> None:
+    """Point the module's paths at ``study`` (batista-ges: the names above; batista-so3: the ``-so3-family`` files,
+    compared with the shipped Monte Carlo-tuned ``batista-so3.json``)."""
+    global STUDY, OUT, GAINS_OUT, GAINS_LBFGS, GROWING, SHIPPED
+    STUDY = study
+    if study == "batista-so3":
+        OUT = RESULTS / "varfree-tune-batista-so3.json"
+        GAINS_OUT = RESULTS / "gains-batista-so3-varfree-family.json"
+        GAINS_LBFGS = RESULTS / "gains-batista-so3-varfree-family-lbfgs.json"
+        GROWING = GAINS_DIR / "batista-so3.json"
+        SHIPPED = GAINS_DIR / "batista-so3-gradient.json"
+
+
+def so3_family_transforms(switch_times, grow_from: float = 900.0):
+    """batista-so3's share of the family of research/ges_refined_start.py: alpha1 = one level before ``grow_from``
+    and one after, alpha2 = the same two levels and a power of t after ``grow_from`` (eq. (9) of batista2019-so3
+    has the same linear block as the GES paper's eq. (15) after 720 s); alpha0, alpha3, alpha4 tuned as they are
+    (one positive number each). 8 numbers."""
+    from ges_refined_start import family_transforms
+
+    t = family_transforms(switch_times, grow_from)
+    return {"alpha1": t["alpha1"], "alpha2": t["alpha2"]}
 
 
 def _payload():
-    return io.read_json(OUT) if OUT.exists() else {"experiment": "batista-ges variance-free tuning"}
+    return io.read_json(OUT) if OUT.exists() else {"experiment": f"{STUDY} variance-free tuning"}
 
 
 def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
@@ -70,20 +98,22 @@ def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
     import jaxatt
     from jaxatt import schedule
 
-    s = studies.get("batista-ges").setup()
+    s = studies.get(STUDY).setup()
     times = np.asarray(schedule.refine(s.params, ges.GROWING_MEMORY_TIMES, ["alpha1", "alpha2"]).switch_times)
     lbfgs = optimizer == "lbfgs"
     out = GAINS_LBFGS if lbfgs else GAINS_OUT
+    # batista-so3: L-BFGS straight from the paper's gains (no Adam stage)
+    start = str(GAINS_OUT) if lbfgs and STUDY == "batista-ges" else None
     t0 = time.perf_counter()
     res = jaxatt.fit(
-        data="batista-ges",
+        data=STUDY,
         objective="varfree",
         steps=steps,
         lr=lr if lr is not None else (1.0 if lbfgs else 0.1),
         optimizer=optimizer,
-        start=str(GAINS_OUT) if lbfgs else None,
+        start=start,
         refine_schedule=ges.GROWING_MEMORY_TIMES,
-        transforms=family_transforms(times),
+        transforms=family_transforms(times) if STUDY == "batista-ges" else so3_family_transforms(times),
         out=str(out),
         resume=resume,
         overwrite=not resume,
@@ -102,16 +132,19 @@ def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
             "steps": steps,
             "lr": lr,
             "optimizer": optimizer,
-            "start": str(GAINS_OUT.relative_to(HERE.parent)) if lbfgs else "paper",
-            "family": "research/ges_refined_start.py family_transforms (8)",
+            "start": start and str(GAINS_OUT.relative_to(HERE.parent)) or "paper",
+            "family": "research/ges_refined_start.py family_transforms (8)"
+            if STUDY == "batista-ges"
+            else "so3_family_transforms (8)",
         },
     }
     io.write_json(OUT, payload)
 
 
 def gain_sets():
-    s = studies.get("batista-ges").setup()
-    sets = {"paper": s.params, "growing": gainsfile.apply(s.params, gainsfile.read(GROWING)["gains"])}
+    s = studies.get(STUDY).setup()
+    shipped = "growing" if STUDY == "batista-ges" else "shipped"
+    sets = {"paper": s.params, shipped: gainsfile.apply(s.params, gainsfile.read(GROWING)["gains"])}
     if GAINS_OUT.exists():
         sets["varfree-tuned"] = gainsfile.apply(s.params, gainsfile.read(GAINS_OUT)["gains"])
     if GAINS_LBFGS.exists():
@@ -232,7 +265,14 @@ def main(argv=None):
     ap.add_argument("--eval-seed", type=int, default=4000)
     ap.add_argument("--eval-chunk", type=int, default=100)
     ap.add_argument("--sets", nargs="*", help="evaluate only these gain sets (paper, growing, varfree-tuned)")
+    ap.add_argument(
+        "--study",
+        choices=("batista-ges", "batista-so3"),
+        default="batista-ges",
+        help="batista-so3: the same family on alpha1 / alpha2, L-BFGS from the paper's gains (--optimizer lbfgs)",
+    )
     a = ap.parse_args(argv)
+    _use(a.study)
     if a.phase == "tune":
         tune(a.steps, a.lr, a.resume, a.optimizer)
     elif a.phase == "predict":

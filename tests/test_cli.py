@@ -271,6 +271,39 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     assert cli.main(["evaluate", "--experiment", "batista-ges", "--gains", str(gains), "--runs", "1"]) == 2
 
 
+def test_evaluate_runs_the_set_up_the_gains_were_tuned_on(tmp_path, capsys):
+    """Gains tuned through the API on a non-default configuration (two constant vectors, noisy sensors) are
+    evaluated on that configuration, at the study's duration or --duration; a gains file whose set-up cannot be
+    built is refused with a line naming --gains."""
+    import jaxatt
+    from jaxatt import studies
+    from jaxatt.fitting import gainsfile
+
+    gains = tmp_path / "g.json"
+    tuned_on = {"scenario": "two_constant", "form": "quaternion", "gyro_noise_std": 0.01, "meas_noise_std": 0.05}
+    jaxatt.fit(None, None, "complementary", config={**tuned_on, "duration": 2.0}, steps=0, out=str(gains), quiet=True)
+    out = tmp_path / "e.json"
+    argv = ["evaluate", "--experiment", "complementary", "--gains", str(gains), "--runs", "2", "--quiet"]
+    assert cli.main([*argv, "--duration", "3", "--json", str(out)]) == 0
+    cfg = json.loads(out.read_text())["config"]
+    assert {k: cfg[k] for k in tuned_on} == tuned_on and cfg["duration"] == 3.0
+    # the best gains of a fit that did not finish are used, with a warning
+    d = json.loads(gains.read_text())
+    gains.write_text(json.dumps({**d, "status": "interrupted"}))
+    capsys.readouterr()
+    assert cli.main([*argv, "--duration", "3"]) == 0
+    err = capsys.readouterr().err
+    assert "jaxatt: warning:" in err and "did not finish" in err and "'interrupted'" in err
+    with pytest.warns(UserWarning, match="did not finish"):
+        gainsfile.read_params(str(gains), "complementary", base=studies.get("complementary").setup(**tuned_on).params)
+    d["settings"]["config"]["no_such_setting"] = 1
+    gains.write_text(json.dumps(d))
+    capsys.readouterr()
+    assert cli.main([*argv, "--duration", "3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--gains" in err and "no_such_setting" in err
+
+
 def _write_broad_trial(path, samples, q_true, rate):
     import h5py
 

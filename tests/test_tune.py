@@ -406,3 +406,31 @@ def test_basis_gradients_are_the_chain_rule_of_the_interval_gradients(ges):
         )
     errs = fd_check(prob, tb, g2, [unit_direction(tb.init(), "gain_z", i) for i in range(3)])
     assert max(errs) < 1e-4, errs
+
+
+def test_a_study_without_x64_says_so_once_and_labels_its_precision(tmp_path):
+    """With JAX's x64 mode off (jaxatt never switches it), a study's paper gains are float32 with one jaxatt
+    warning that says how to get float64 (not one JAX truncation warning per array), and the reproduce JSON
+    records float32, the precision that ran."""
+    import subprocess
+    import sys
+
+    code = f"""
+import json, warnings
+import jax
+assert not jax.config.values["jax_enable_x64"]
+from jaxatt import studies
+st = studies.get("complementary")
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    s = st.setup(duration=0.5)
+msgs = [str(w.message) for w in caught]
+assert len(msgs) == 1 and "jax_enable_x64" in msgs[0] and "float32" in msgs[0], msgs
+assert {{str(x.dtype) for x in jax.tree_util.tree_leaves(s.params) if x.dtype.kind == "f"}} == {{"float32"}}
+studies.reproduce(st, st.config(duration=0.5), runs=1, json_path={str(tmp_path / "r.json")!r}, quiet=True)
+print(json.load(open({str(tmp_path / "r.json")!r}))["config"]["dtype"])
+"""
+    env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "float32"

@@ -695,7 +695,7 @@ def fit(
 OPTIMIZERS = ("adam", "lbfgs")
 
 #: statuses of a finished fit (a gains file with one of them is replaced only by another finished fit)
-FINISHED = ("done", "early-stopped")
+FINISHED = gainsfile.FINISHED
 
 
 def partial_path(out) -> Path:

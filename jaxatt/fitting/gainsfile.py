@@ -118,6 +118,25 @@ def write(
     io.write_json(path, payload)
 
 
+#: statuses of a finished fit; any other status (``running``, ``interrupted``, ``non-finite``) is a fit that
+#: stopped early, whose file holds the best gains it had reached
+FINISHED = ("done", "early-stopped")
+
+
+def unfinished_note(d: Mapping[str, Any], path) -> Optional[str]:
+    """One line saying that gains file ``path`` (read as ``d``) holds the best gains of a fit that did not finish,
+    or None for a finished fit (or a file without a status: written by hand or by jaxatt 0.1)."""
+    status = d.get("status")
+    if status is None or status in FINISHED:
+        return None
+    best = d.get("best_step")
+    return (
+        f"gains file {path}: its fit did not finish (status {status!r}); using the best gains it reached"
+        + (f" (step {best})" if best is not None else "")
+        + "; continue it with resume"
+    )
+
+
 def read(path) -> dict:
     """Read a gains file (this format or jaxatt 0.1's) as this format's dict. ValueError naming the file when it is
     missing, not JSON or not a gains file."""
@@ -170,8 +189,13 @@ def apply(params, gains: Mapping[str, Any], *, source: str = "gains"):
 def read_params(path, entry=None, base=None, *, dtype=None):
     """Params from a gains file: ``base`` with the file's gains put in, checked by the entry. Default ``base``: the
     paper's params of the file's study when it names one, else the registry entry's defaults in ``dtype``. The file
-    must hold gains of that observer."""
+    must hold gains of that observer (one of an unfinished fit is used with a warning: :func:`unfinished_note`)."""
     d = read(path)
+    note = unfinished_note(d, path)
+    if note:
+        import warnings
+
+        warnings.warn(note, stacklevel=2)
     if entry is not None:
         from ..observers import registry
 

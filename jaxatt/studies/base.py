@@ -31,6 +31,24 @@ from ..progress import done_reporting, report_line
 __all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict"]
 
 
+def paper_dtype():
+    """The arithmetic of a study's paper gains and runs: float64 when JAX's x64 mode is on (the papers' Earth rate,
+    7.3e-5 rad/s beside body rates of rad/s, needs it); float32 otherwise, with a warning (jaxatt never switches the
+    mode: ``jax.config.update("jax_enable_x64", True)``; the ``jaxatt`` command does it for you)."""
+    import jax.numpy as jnp
+
+    if jax.config.values["jax_enable_x64"]:
+        return jnp.float64
+    import warnings
+
+    warnings.warn(
+        "jaxatt studies run in float32 because JAX's x64 mode is off; call "
+        "jax.config.update('jax_enable_x64', True) first for the papers' float64",
+        stacklevel=3,
+    )
+    return jnp.float32
+
+
 def config_dict(cfg) -> dict:
     """A Config NamedTuple as a JSON-ready dict (tuples as lists)."""
     if cfg is None:
@@ -263,7 +281,7 @@ def reproduce(
     obs = dict(observers) if observers is not None else study.observers(cfg)
     for _, (_, p) in obs.items():
         study.check_params(p)
-    dtype_name = str(np.dtype(dtype)) if dtype is not None else "float64"
+    dtype_name = str(np.dtype(dtype if dtype is not None else jax.numpy.result_type(float)))
     spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs)
     saved = _read_runs(runs_file(json_path), spec) if resume else {}
     if resume:

@@ -205,9 +205,8 @@ class BatistaStudy(base.Study):
         return self.mod.scenario(cfg)
 
     def observers(self, cfg, dtype=None):
-        import jax.numpy as jnp
 
-        return {self.tuned: (self.mod.observer(cfg), self.mod.params(cfg, dtype=jnp.float64))}
+        return {self.tuned: (self.mod.observer(cfg), self.mod.params(cfg, dtype=base.paper_dtype()))}
 
     def errors(self, truth, out):
         return self.mod.errors(truth, out)

@@ -130,9 +130,8 @@ class ComplementaryStudy(base.Study):
         return scenario(cfg)
 
     def observers(self, cfg, dtype=None):
-        import jax.numpy as jnp
 
-        return {self.tuned: (observer(cfg), params(cfg, dtype=jnp.float64))}
+        return {self.tuned: (observer(cfg), params(cfg, dtype=base.paper_dtype()))}
 
     def errors(self, truth, out):
         return errors(truth, out)

@@ -575,7 +575,7 @@ class NLIOStudy(base.Study):
         return {n: self.compared(cfg, n) for n in cfg.observers}
 
     def compared(self, cfg, label):
-        return observer(cfg, label), params(cfg, label, dtype=jnp.float64)
+        return observer(cfg, label), params(cfg, label, dtype=base.paper_dtype())
 
     def errors(self, truth, out):
         return errors(truth, out)
