@@ -26,7 +26,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from .types import MAX_RUNS
+from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
 
@@ -97,10 +97,10 @@ def _count(minimum: int, maximum: Optional[int] = None):
 
 def _seed(s: str) -> int:
     """A PRNG seed: an integer that fits in 64 bits (what ``jax.random.PRNGKey`` takes)."""
-    v = _integer(s)
-    if not -(2**63) <= v < 2**63:
-        raise argparse.ArgumentTypeError(f"must fit in 64 bits (|seed| < 2^63), got {s}")
-    return v
+    try:
+        return check_seed(_integer(s))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must fit in 64 bits (|seed| < 2^63), got {s}") from None
 
 
 def _latitude(s: str) -> float:

@@ -27,7 +27,7 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .types import MAX_RUNS, ImuSample, Observer
+from .types import MAX_RUNS, ImuSample, Observer, check_seed
 
 __all__ = [
     "run",
@@ -80,15 +80,6 @@ def check_count(name: str, value, minimum: int = 0, maximum: Optional[int] = Non
     if maximum is not None and value > maximum:
         raise ValueError(f"{name} must be <= {maximum}, got {value}")
     return int(value)
-
-
-def check_seed(seed) -> int:
-    """A PRNG seed: a whole number that fits in 64 bits, |seed| < 2^63 (what ``jax.random.PRNGKey`` takes)."""
-    if seed is None or isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an integer, got {seed!r}")
-    if not -(2**63) <= int(seed) < 2**63:
-        raise ValueError(f"seed must fit in 64 bits (|seed| < 2^63), got {seed}")
-    return int(seed)
 
 
 # ------------------------------------------------------------------------------------------------------

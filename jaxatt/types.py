@@ -24,6 +24,23 @@ __all__ = ["ArrayLike", "ImuSample", "VectorSample", "Interval", "Observer", "HO
 #: keys would repeat.
 MAX_RUNS = 2**32
 
+
+def check_seed(seed) -> int:
+    """A PRNG seed: a whole number that fits in 64 bits, |seed| < 2^63 (what ``jax.random.PRNGKey`` takes);
+    ValueError otherwise. (Here, without jax, so that the command line checks ``--seed`` before importing it.)"""
+    if seed is None or isinstance(seed, bool) or not isinstance(seed, int) and not _is_numpy_integer(seed):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if not -(2**63) <= int(seed) < 2**63:
+        raise ValueError(f"seed must fit in 64 bits (|seed| < 2^63), got {seed}")
+    return int(seed)
+
+
+def _is_numpy_integer(x) -> bool:
+    import numpy as np
+
+    return isinstance(x, np.integer)
+
+
 #: The type of a gain or reference in an observer's ``Params``: a numpy array or float when the params are built,
 #: a jax array or a tracer inside ``jit`` / ``grad`` / ``vmap``. Deliberately loose for the type checker (``Any``).
 ArrayLike = Any

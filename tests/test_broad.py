@@ -533,6 +533,8 @@ def _synthetic_trial(name="01_x", n=50, rate=100.0):
         (lambda tr: [tr._replace(rate_hz=285.714)], r"rate_hz = 285.714 Hz but samples.t steps by 0.01 s"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(acc=None))], r"samples.acc must have shape"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(gyr=tr.samples.gyr + np.inf))], r"gyr contains \+-inf"),
+        (lambda tr: [tr._replace(samples=tr.samples._replace(gyr=tr.samples.gyr * np.nan))], r"gyr has no finite"),
+        (lambda tr: [tr._replace(samples=tr.samples._replace(acc=tr.samples.acc * np.nan))], r"acc has no finite"),
     ],
 )
 def test_trials_built_by_hand_are_checked_with_one_line(change, match):

@@ -198,7 +198,8 @@ def load_trial(path) -> Trial:
 
 def check_trials(trials, what: str = "trials", need_scored: bool = False) -> List[Trial]:
     """``trials`` as a list, or ValueError (one line naming the trial and field) unless each is a :class:`Trial`
-    with a unique name, N >= 2 samples, gyr / acc / mag (N, 3) real without +-inf, quat_true (N, 4) unit
+    with a unique name, N >= 2 samples, gyr / acc / mag (N, 3) real without +-inf (gyr and acc with at least one
+    finite reading; a trial without magnetometer readings is a 6D trial), quat_true (N, 4) unit
     quaternions (w, x, y, z) where finite, movement (N,) bool, rate_hz a positive number agreeing with
     ``samples.t`` (1 %). ``need_scored``: every trial has a scored sample (movement and finite truth), as a fit's
     loss needs (a trial with none would add a zero error)."""
@@ -225,6 +226,8 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
                 raise ValueError(f"{where}: samples.{field} must be real numbers, got dtype {a.dtype}")
             if np.isinf(a).any():
                 raise ValueError(f"{where}: samples.{field} contains +-inf (mark a missing reading with NaN)")
+            if field != "mag" and not np.isfinite(a).any():
+                raise ValueError(f"{where}: samples.{field} has no finite reading (every row NaN): nothing to filter")
         q = np.asarray(tr.quat_true)
         if q.shape != (n, 4) or not np.issubdtype(q.dtype, np.floating):
             raise ValueError(f"{where}: quat_true must be float (N, 4) = ({n}, 4), got {q.dtype}{list(q.shape)}")
