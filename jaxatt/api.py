@@ -117,7 +117,8 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
         d = np.diff(ts)
         step = float(np.median(d))
         if step > 1.0:
-            notes.append(f"the median sample interval is {step:.4g} s: are the timestamps in ms? jaxatt expects s")
+            unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
+            notes.append(f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s")
         gaps = d > 10.0 * step
         if gaps.any():
             k = int(np.argmax(d))

@@ -315,6 +315,7 @@ def _tiny_trial():
         ({"gyr": np.rad2deg}, r"gyr reaches .* is it in deg/s"),
         ({"acc": lambda a: a / 9.81}, r"median \|acc\| is 1: is it in g"),
         ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms"),
+        ({"t": lambda t: t * 1e6}, r"sample interval is 1e\+04 s: are the timestamps in us"),
         ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no finite reading"),
         (
             {"t": lambda t: np.where(t > 0.3, t + 100.0, t)},
