@@ -54,6 +54,11 @@ ObserverLike = Union[str, Observer, registry.Entry]
 # ------------------------------------------------------------------------------------------------------------
 # Boundary helpers
 # ------------------------------------------------------------------------------------------------------------
+def trial_arrays(trials):
+    """Every sensor array of ``trials`` (what :func:`compute_dtype` looks at: one float64 trial makes it float64)."""
+    return [a for t in trials for a in (t.samples.gyr, t.samples.acc, t.samples.mag)]
+
+
 def compute_dtype(*arrays, dtype=None, what: str = "input"):
     """The arithmetic for arrays of the given dtypes: ``dtype`` if given; float64 when any input is float64 and x64
     is on; float32 otherwise (with a warning when float64 input is computed in float32)."""
@@ -152,6 +157,11 @@ def _times(t, dt, n: int):
             raise TypeError
         dt = float(dt)
     except (TypeError, ValueError):
+        if np.ndim(dt) > 0:
+            raise ValueError(
+                f"dt must be one number of seconds, got an array of shape {np.shape(dt)} (for a varying step give "
+                "t, the timestamps)"
+            ) from None
         raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
@@ -439,6 +449,11 @@ def filter(
     off = non_unit_row(q)  # | |q| - 1 | > logs.UNIT_TOLERANCE
     if off is not None:
         k = off[0]
+        if entry is not None:  # a registered observer normalises its estimate: this is overflow, not a bug of step
+            raise FloatingPointError(
+                f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm "
+                f"{off[1]:.6g}): the filter overflowed; check the inputs (units) and gains"
+            )
         raise ValueError(
             f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm {off[1]:.6g}); "
             "an observer's q must have norm 1 (normalise it in step) and its r must be a rotation matrix"
@@ -446,6 +461,13 @@ def filter(
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
+    nonfinite = [k for k, v in outputs.items() if np.issubdtype(v.dtype, np.floating) and not np.all(np.isfinite(v))]
+    if nonfinite:
+        warnings.warn(
+            f"{name}: the estimate is finite but the output {', '.join(nonfinite)} "
+            f"{'has' if len(nonfinite) == 1 else 'have'} non-finite values",
+            stacklevel=2,
+        )
     # the sample times, exact (float32 rounds Unix times to 128 s)
     if "t" in outputs and outputs["t"].shape == ts.shape:
         outputs["t"] = ts
@@ -531,7 +553,7 @@ def broad_score(
     from .data import broad as B
 
     trials = B.check_trials(trials)
-    dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
+    dt_ = compute_dtype(*trial_arrays(trials), dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     if entry is not None and entry.frame != "ENU":

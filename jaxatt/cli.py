@@ -261,7 +261,7 @@ def _parser() -> argparse.ArgumentParser:
     tp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
     tp.add_argument("--steps", type=_count(0), default=100, help="optimiser steps")
     tp.add_argument("--train-runs", type=_count(1, MAX_RUNS), default=32, help="training seeds")
-    tp.add_argument("--val-runs", type=_count(0), default=16, help="validation seeds (early stopping)")
+    tp.add_argument("--val-runs", type=_count(0, MAX_RUNS), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=_seed, default=0)
     tp.add_argument("--lr", type=_positive, default=None, help="step size (default 0.05 for adam, 1 for lbfgs)")
@@ -643,19 +643,27 @@ def _evaluate(args) -> int:
     s = study.setup(**{k: v for k, v in cfg._asdict().items()})
     params, source, warn = s.params, "paper", None
     if d is not None:
-        note = gainsfile.unfinished_note(d, args.gains)
-        if note:
-            warnings.warn(note, stacklevel=1)
         if d.get("study") not in (None, study.name) or d["observer"] != s.entry:
             raise UserError(
                 f"--gains {args.gains}: holds gains of {d['observer']!r} "
                 f"({d.get('study') or 'recorded data'}), not of {study.name}"
             )
+        note = gainsfile.unfinished_note(d, args.gains)
+        if note:
+            warnings.warn(note, stacklevel=1)
         params = gainsfile.apply(s.params, d["gains"], source=f"--gains {args.gains}")
         source = args.gains
         tun = d.get("settings", {})
         if tun.get("seed") == args.seed:
-            used = set(range(*tun.get("train_run_indices", [0, 0]))) | set(range(*tun.get("val_run_indices", [0, 0])))
+            try:
+                used = set(range(*tun.get("train_run_indices", [0, 0]))) | set(
+                    range(*tun.get("val_run_indices", [0, 0]))
+                )
+            except (TypeError, ValueError):
+                raise UserError(
+                    f"--gains {args.gains}: settings.train_run_indices / val_run_indices must be [start, stop] "
+                    "run numbers"
+                ) from None
             if used & set(range(args.runs)):
                 warn = (
                     f"warning: {len(used & set(range(args.runs)))} evaluation runs were used for tuning (same seed "
@@ -713,7 +721,9 @@ def _broad(args) -> int:
     from . import api, io
     from .data import broad
 
-    io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains})
+    io.check_output_path(
+        args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains, "--data-dir": args.data_dir}
+    )
     from .progress import Heartbeat
 
     trials = broad.load(args.data_dir, args.trials)
@@ -753,7 +763,12 @@ def _broad_tune(args) -> int:
     from .data import broad
     from .fitting import fitter
 
-    io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES, inputs={"--init-gains": args.init_gains})
+    io.check_output_path(
+        args.out,
+        "--out",
+        suffixes=io.JSON_SUFFIXES,
+        inputs={"--init-gains": args.init_gains, "--data-dir": args.data_dir},
+    )
     trials = broad.load(args.data_dir, args.trials)
     from .progress import Heartbeat
 
@@ -792,6 +807,15 @@ def _import_attr(spec: str, flag: str):
         mod = importlib.import_module(mod_name)
     except ImportError as e:
         raise UserError(f"{flag} {spec}: cannot import {mod_name} ({e})") from None
+    except Exception as e:  # the user's module fails while it is imported: one line, not its traceback
+        where = ""
+        tb = e.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is not None:
+            where = f" at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}"
+        msg = " ".join(str(e).split())
+        raise UserError(f"{flag} {spec}: importing {mod_name} failed{where}: {type(e).__name__}: {msg}") from None
     finally:
         sys.path.pop(0)
     if not hasattr(mod, attr):

@@ -303,6 +303,14 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
                 f"observer {name!r}: the output field {field} of {where} must be a float array of shape {shape}, "
                 f"got {v.dtype}{list(v.shape)}"
             )
+        if jnp.finfo(v.dtype).bits < jnp.finfo(obs_dtype).bits:
+            import warnings
+
+            warnings.warn(
+                f"observer {name!r}: the output field {field} of {where} is {v.dtype} although the observer runs "
+                f"in {jnp.dtype(obs_dtype).name}: its estimates lose that precision (keep the state's dtype in step)",
+                stacklevel=3,
+            )
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -57,10 +57,11 @@ JSON_SUFFIXES = (".json", "")
 def check_output_path(
     path, flag: str = "output", suffixes: Optional[Sequence[str]] = None, inputs: Optional[Mapping[str, Any]] = None
 ) -> Optional[Path]:
-    """Check, before computing, that ``path`` can be written: its folder exists or can be created and is
-    writable, and ``path`` is not a folder; with ``suffixes`` (such as (".csv", ".npz"), "" for none), that its
-    extension is one of them (a device or FIFO is exempt); with ``inputs`` ({flag: path} of the files the command
-    reads), that it is none of them (writing would destroy an input). Returns the Path (None for None).
+    """Check, before computing, that ``path`` can be written: its folder exists or can be created (the check
+    creates it, probes it and removes what it created) and is writable, and ``path`` is not a folder; with
+    ``suffixes`` (such as (".csv", ".npz"), "" for none), that its extension is one of them (a device or FIFO is
+    exempt); with ``inputs`` ({flag: path} of the files or folders the command reads), that it is none of those
+    files and not inside those folders (writing would destroy an input). Returns the Path (None for None).
     ValueError naming ``flag``."""
     if path is None:
         return None
@@ -68,7 +69,11 @@ def check_output_path(
         raise ValueError(f"{flag}: empty path")
     p = Path(path)
     for other_flag, other in (inputs or {}).items():
-        if other is not None and str(other).strip() and _same_file(p, Path(other)):
+        if other is None or not str(other).strip():
+            continue
+        if Path(other).is_dir() and p.exists() and _inside(p, Path(other)):
+            raise ValueError(f"{flag} {path}: is a file in the {other_flag} folder (writing it would change the input)")
+        if _same_file(p, Path(other)):
             raise ValueError(f"{flag} {path}: is the {other_flag} file (writing it would destroy the input)")
     if p.exists() and p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder, expected a file name")
@@ -80,21 +85,36 @@ def check_output_path(
             raise ValueError(f"{flag} {path}: is not writable")
         return p
     parent = p.parent if str(p.parent) else Path(".")
+    created = [a for a in [parent, *parent.parents] if not a.exists()]  # folders the probe makes (deepest first)
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ValueError(f"{flag} {path}: cannot create its folder ({e.strerror or e})") from None
-    if not os.access(parent, os.W_OK):
-        raise ValueError(f"{flag} {path}: folder {parent} is not writable")
-    if p.exists() and not os.access(p, os.W_OK):
-        raise ValueError(f"{flag} {path}: file is not writable")
-    try:  # the real test (permissions can say yes where a write fails: /proc, read-only mounts, as root)
-        fd, probe = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(parent))
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise ValueError(f"{flag} {path}: cannot write in folder {parent} ({e.strerror or e})") from None
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"{flag} {path}: cannot create its folder ({e.strerror or e})") from None
+        if not os.access(parent, os.W_OK):
+            raise ValueError(f"{flag} {path}: folder {parent} is not writable")
+        if p.exists() and not os.access(p, os.W_OK):
+            raise ValueError(f"{flag} {path}: file is not writable")
+        try:  # the real test (permissions can say yes where a write fails: /proc, read-only mounts, as root)
+            fd, probe = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(parent))
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as e:
+            raise ValueError(f"{flag} {path}: cannot write in folder {parent} ({e.strerror or e})") from None
+    finally:  # a check leaves nothing behind: the writer creates the folders when it has something to write
+        for folder in created:
+            try:
+                folder.rmdir()
+            except OSError:
+                break
     return p
+
+
+def _inside(a: Path, folder: Path) -> bool:
+    try:
+        return a.resolve().parent == folder.resolve()
+    except OSError:
+        return False
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -197,10 +217,10 @@ def read_json(path, what: str = "file") -> dict:
     if not p.is_file():
         raise ValueError(f"{what} {path}: " + ("is a folder, expected a file" if p.is_dir() else "not found"))
     try:
-        with open(p) as f:
+        with open(p, encoding="utf-8") as f:
             d = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{what} {path}: not readable JSON ({e})") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{what} {path}: not readable JSON ({' '.join(str(e).split())})") from None
     if not isinstance(d, dict):
         raise ValueError(f"{what} {path}: expected a JSON object")
     return d

@@ -27,7 +27,7 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .types import MAX_RUNS, ImuSample, Observer, check_seed
+from .types import MAX_RUNS, ImuSample, Observer, check_seed, check_step_count
 
 __all__ = [
     "run",
@@ -272,9 +272,7 @@ def _simulation(
     duration = check_duration(duration)
     trace_every = check_count("trace_every", trace_every or 0)
     engine.check_hold(hold)
-    n_steps = int(round(duration / dt))
-    if n_steps < 1:
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    n_steps = check_step_count(duration, dt)
     if abs(duration / dt - n_steps) > 1e-6:
         raise ValueError(f"duration ({duration:g} s) must be a whole number of steps of dt = {dt:g} s")
     if trace_every and engine.BLOCK % trace_every:
@@ -362,9 +360,7 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
     Holds the whole trajectory: meant for short runs, tests and for feeding :func:`run`.
     """
     dt = check_dt(dt)
-    n_steps = int(round(duration / dt))
-    if n_steps < 1:
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    n_steps = check_step_count(check_duration(duration), dt)
     keys = run_keys(seed, [run_index]) if key is None else jnp.asarray(key)[None]
     _, sim_dtype = _dtypes(None)
     fn = engine.compiled(

@@ -25,6 +25,25 @@ __all__ = ["ArrayLike", "ImuSample", "VectorSample", "Interval", "Observer", "HO
 MAX_RUNS = 2**32
 
 
+#: Most time steps of one run: the engine counts steps in int32.
+MAX_STEPS = 2**31 - 1
+
+
+def check_step_count(duration: float, dt: float) -> int:
+    """round(duration / dt), the number of steps of a run: ValueError naming both unless 1 <= it <= MAX_STEPS
+    (``duration`` and ``dt`` are already finite positive seconds)."""
+    ratio = float(duration) / float(dt)
+    if not ratio < MAX_STEPS + 0.5:
+        raise ValueError(
+            f"duration / dt = {ratio:.3g} steps: at most {MAX_STEPS} steps per run (duration {duration:g} s, "
+            f"dt {dt:g} s)"
+        )
+    n = int(round(ratio))
+    if n < 1:
+        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    return n
+
+
 def check_seed(seed) -> int:
     """A PRNG seed: a whole number that fits in 64 bits, |seed| < 2^63 (what ``jax.random.PRNGKey`` takes);
     ValueError otherwise. (Here, without jax, so that the command line checks ``--seed`` before importing it.)"""

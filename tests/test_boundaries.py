@@ -99,6 +99,14 @@ def make_files(d: Path) -> None:
         _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
     (d / "trials_empty").mkdir()
     (d / "folder").mkdir()
+    novalue = json.loads(json.dumps(robust))
+    novalue["gains"]["tau_acc"] = {"val": 1.0}
+    (d / "robust_novalue.json").write_text(json.dumps(novalue))
+    for name, info in (("info", {"trials": {"01_info": {"groups": ["all_trials", "undisturbed"]}}}), ("badinfo", [1])):
+        (d / f"trials_{name}").mkdir()
+        _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5")
+        (d / f"trials_{name}" / "trials.json").write_text(json.dumps(info))
+    (d / "empty_runs.json.runs.npz").write_bytes(b"")
 
 
 def _run(argv, files, capsys):
@@ -241,6 +249,17 @@ BAD_INPUT = [
         ["broad-tune", "--data-dir", "{d}/trials_ok", "--init-gains", "{d}/keep.json", "--out", "{d}/keep.json"],
         r"the --init-gains file",
     ),
+    # malformed gains files and BROAD folders, absurd step counts, inputs that the output would overwrite
+    (["filter", "--log", "{d}/log.csv", "--gains", "{d}/robust_novalue.json", "--out", "{d}/keep.csv"], r"'value'"),
+    (["broad", "--data-dir", "{d}/trials_badinfo", "--trials", "01"], r"trials\.json: not BROAD's trials\.json"),
+    (["broad", "--data-dir", "{d}/trials_info", "--json", "{d}/trials_info/trials.json"], r"--data-dir folder"),
+    (["broad", "--data-dir", "{d}/trials_ok", "--trials", ""], r"no trial named"),
+    (["simulate", "--observer", "batista-ges", *MC, "--dt", "1e-300"], r"steps per run"),
+    (["evaluate", "--experiment", "batista-so3", "--runs", "1", "--duration", "1e300"], r"steps per run"),
+    (["excitation", "--scenario", "rotating", "--duration", "1e300"], r"steps per run"),
+    (["tune", "--experiment", "batista-so3", "--val-runs", "1" + "0" * 20], r"argument --val-runs: must be <="),
+    (["filter", "--log", "{d}/missing.csv", "--out", "{d}/new_folder/a.csv"], r"not found"),
+    (["reproduce", "batista-so3", *MC, "--json", "{d}/empty_runs.json", "--resume"], r"not a runs file of jaxatt"),
 ]
 
 

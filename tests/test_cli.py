@@ -457,3 +457,22 @@ def test_heartbeat_rewrites_one_line_in_a_terminal_and_writes_whole_lines_to_a_l
     lines = log.getvalue().splitlines()
     assert "\r" not in log.getvalue() and 1 <= len(lines) <= 4, lines
     assert all(ln.startswith("job: ") and ln.endswith(" s") for ln in lines)
+
+
+def test_an_observer_module_that_fails_to_import_is_one_line(tmp_path, monkeypatch, capsys):
+    """--observer my_module:X whose import raises (a bug in the user's module): exit 2 and one line naming the flag,
+    the module, the line and the error, not the module's traceback."""
+    from jaxatt import montecarlo
+    from jaxatt.api import ahrs_scenario
+    from jaxatt.data import logs
+
+    samples, _ = montecarlo.simulate_log(ahrs_scenario(), duration=0.5, dt=0.01)
+    logs.save_csv(tmp_path / "log.csv", samples)
+    (tmp_path / "broken_filter.py").write_text("X = 1\nraise RuntimeError('the user\\'s bug')\n")
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    rc = cli.main(["filter", "--log", "log.csv", "--observer", "broken_filter:X", "--out", "est.csv"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0, err
+    assert "--observer broken_filter:X: importing broken_filter failed at broken_filter.py:2" in err
+    assert "RuntimeError: the user's bug" in err and not (tmp_path / "est.csv").exists()

@@ -166,7 +166,10 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
     """Every observer set up for recorded data runs through jaxatt.filter on a simulated log and converges near the
     truth; the frame argument rotates the estimate (NED = fixed rotation of ENU)."""
     samples, r_true = quiet_log
-    est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
+    assert not [str(w.message) for w in caught if "non-finite" in str(w.message)], name  # every output is finite
     err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
     assert np.all(np.isfinite(est.quat)), name
     assert err[-500:].mean() < 3.0, (name, err[-500:].mean())
@@ -515,3 +518,66 @@ def test_imu_sample_is_the_users_input_type():
         params=MY_PARAMS,
     )
     assert seen == {"init": ImuSample, "step": ImuSample}
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"seed": 1.5}, "seed must be an integer"),
+        ({"callback": 5}, "callback must be a function"),
+        ({"tune": "beta"}, r"tune must be a list of gain names, e.g. \['beta'\]"),
+        ({"patience": -1}, "patience must be"),
+        ({"steps": True}, "steps must be an integer"),
+    ],
+)
+def test_fit_arguments_of_the_wrong_kind_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jaxatt.fit("madgwick", None, [_tiny_trial()], **{"steps": 1, **kwargs})
+
+
+def test_one_float64_trial_makes_the_batch_float64():
+    """compute_dtype looks at every trial: a float32 trial beside a float64 one does not narrow the float64 one."""
+    t64 = _tiny_trial()
+    t32 = t64._replace(
+        name="01_tiny32", samples=jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), t64.samples)
+    )
+    # robust: Madgwick's normalised gradient step makes rounding matter on this noise-free trial
+    alone = jaxatt.broad_score("robust", None, [t64]).trials["00_tiny"].total_rmse_deg
+    mixed = jaxatt.broad_score("robust", None, [t32, t64]).trials["00_tiny"].total_rmse_deg
+    assert mixed == pytest.approx(alone, rel=1e-12, abs=1e-12)
+    res = jaxatt.fit("madgwick", None, [t32, t64], steps=0)
+    assert np.asarray(res.params.beta).dtype == np.float64
+
+
+def test_narrowed_or_non_finite_outputs_of_a_users_observer_are_said():
+    """float64 input and a step that returns a float32 q: a warning (the estimates lose precision); a finite q with
+    a NaN field beside it: a warning naming the field (not a silent success)."""
+    samples, _ = _short_log()
+
+    def narrow_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        return new, out._replace(q=out.q.astype(jnp.float32))
+
+    def nan_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        return new, out._replace(bias=out.bias * jnp.nan)
+
+    for step, match in ((narrow_step, "output field q of step is float32"), (nan_step, "output bias has non-finite")):
+        with pytest.warns(UserWarning, match=match):
+            jaxatt.filter(
+                Observer(my_init, step, "mine"), samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS
+            )
+
+
+def test_a_registered_filter_that_overflows_is_a_non_finite_result():
+    """acc of 1e200 m/s^2 overflows a registered filter's normalisation: FloatingPointError (the CLI exits 1), not
+    a complaint about the observer's code."""
+    samples, _ = _short_log()
+    with pytest.raises(FloatingPointError, match="madgwick"):
+        jaxatt.filter("madgwick", samples.gyr, samples.acc * 1e200, samples.mag, dt=0.01)
+
+
+def _short_log():
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-4, acc_noise_std=0.01, mag_noise_std=0.05, gyro_bias=(0, 0, 0))
+    samples, truth = montecarlo.simulate_log(scn, duration=2.0, dt=0.01)
+    return samples, truth

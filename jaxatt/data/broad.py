@@ -167,15 +167,19 @@ def load_trial(path) -> Trial:
             rate_attr = np.asarray(f.attrs["sampling_rate"])
             if rate_attr.size != 1:
                 raise ValueError(f"{path.name}: the sampling_rate attribute must be one number, got {rate_attr!r}")
-            rate = float(rate_attr.reshape(()))
+            try:
+                rate = float(rate_attr.reshape(()))
+            except (TypeError, ValueError):
+                raise ValueError(f"{path.name}: sampling_rate must be a number of Hz, got {rate_attr!r}") from None
             raw = {k: np.asarray(f[k][()]) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat")}
             for k, v in raw.items():
                 if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
                     raise ValueError(f"{path.name}: {k} must hold real numbers, got dtype {v.dtype}")
             gyr, acc, mag, quat = (raw[k].astype(np.float64) for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat"))
             movement = np.asarray(f["movement"][()]).reshape(-1).astype(bool)
-    except OSError as e:
-        raise ValueError(f"{path.name}: cannot read the HDF5 file ({e})") from None
+    except (OSError, TypeError, KeyError, AttributeError) as e:  # unreadable, or a group where a dataset belongs
+        why = " ".join(str(e).split())
+        raise ValueError(f"{path.name}: cannot read the HDF5 file as a BROAD trial ({why})") from None
     if gyr.ndim != 2 or gyr.shape[1:] != (3,):
         raise ValueError(f"{path.name}: imu_gyr has shape {gyr.shape}, expected (N, 3)")
     n = gyr.shape[0]
@@ -282,8 +286,17 @@ def load_trial_info(data_dir) -> Optional[dict]:
     p = Path(data_dir) / "trials.json"
     if not p.exists():
         return None
-    with open(p) as f:
-        return json.load(f)
+    try:
+        with open(p, encoding="utf-8") as f:
+            info = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{p}: cannot read it as JSON ({' '.join(str(e).split())})") from None
+    trials = info.get("trials", {}) if isinstance(info, dict) else None
+    if not isinstance(trials, dict) or not all(
+        isinstance(v, dict) and isinstance(v.get("groups"), list) for v in trials.values()
+    ):
+        raise ValueError(f"{p}: not BROAD's trials.json (want {{'trials': {{name: {{'groups': [...]}}}}}})")
+    return info
 
 
 def trial_groups(name: str, info: Optional[dict] = None) -> List[str]:
@@ -342,6 +355,9 @@ def resolve_trials(data_dir, trials=None) -> List[str]:
         return names
     if isinstance(trials, str):
         trials = [t for t in trials.replace(",", " ").split() if t]
+    trials = [t for t in trials if str(t).strip()]
+    if not trials:
+        raise ValueError("no trial named: give trial names, numbers, groups or fold1 / fold2 (or leave it out: all)")
     info = load_trial_info(data_dir)
     out: List[str] = []
     for t in trials:

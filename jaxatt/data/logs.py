@@ -100,7 +100,8 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.argmax(dt <= 0))
-        raise ValueError(f"{source}: t must be strictly increasing; t[{k}] = {t[k]!r} >= t[{k + 1}] = {t[k + 1]!r}")
+        a, b = float(t[k]), float(t[k + 1])
+        raise ValueError(f"{source}: t must be strictly increasing; t[{k}] = {a!r} >= t[{k + 1}] = {b!r}")
     out = {"t": t}
     for name in ("gyr", "acc", "mag"):
         v = getattr(samples, name)
@@ -243,7 +244,10 @@ def save_csv(path, samples: ImuSample, quat_true=None) -> None:
     if q is not None:
         cols += CSV_COLUMNS["quat_true"]
         blocks.append(q)
-    np.savetxt(path, np.concatenate(blocks, axis=1), delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+    table = np.concatenate(blocks, axis=1)
+    io.write_atomic(
+        path, lambda f: np.savetxt(f, table, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
+    )
 
 
 # ------------------------------------------------------------------------------------------------------------

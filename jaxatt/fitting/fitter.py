@@ -39,6 +39,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import engine, io
+from ..types import check_seed
 from . import gainsfile
 from . import parametrize as P
 
@@ -602,8 +603,18 @@ def fit(
     Returns :class:`FitResult`. Raises ValueError (one line) on bad arguments.
     """
 
-    if not isinstance(steps, (int, np.integer)) or steps < 0:
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+    if patience is not None and (
+        isinstance(patience, bool) or not isinstance(patience, (int, np.integer)) or patience < 1
+    ):
+        raise ValueError(f"patience must be a whole number of validations >= 1 or None, got {patience!r}")
+    seed = check_seed(seed)
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be a function of one dict (each step's record) or None, got {callback!r}")
+    if isinstance(tune, str) or isinstance(freeze, str):
+        which = "tune" if isinstance(tune, str) else "freeze"
+        raise ValueError(f"{which} must be a list of gain names, e.g. [{(tune or freeze)!r}], got the string")
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     if lr is None:
@@ -794,7 +805,7 @@ def _fit(
     given = [k for k, v in study_only.items() if v]
     if given:
         raise ValueError(f"{', '.join(given)}: options of a fit on a study, not on recorded trials")
-    from ..api import check_own_observer, compute_dtype, resolve_observer
+    from ..api import check_own_observer, compute_dtype, resolve_observer, trial_arrays
     from ..data import broad as B
 
     trials = list(data) if data is not None else []
@@ -805,7 +816,7 @@ def _fit(
     trials = B.check_trials(trials, "data", need_scored=True)
     val_list = list(val) if val is not None else []  # once: val may be an iterator
     val_trials = B.check_trials(val_list, "val", need_scored=True) if val_list else []
-    dt_ = compute_dtype(trials[0].samples.gyr, dtype=dtype, what="trial data")
+    dt_ = compute_dtype(*trial_arrays([*trials, *val_trials]), dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
     p0 = jax.tree_util.tree_map(
         lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a,

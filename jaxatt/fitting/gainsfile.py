@@ -127,7 +127,7 @@ def unfinished_note(d: Mapping[str, Any], path) -> Optional[str]:
     """One line saying that gains file ``path`` (read as ``d``) holds the best gains of a fit that did not finish,
     or None for a finished fit (or a file without a status: written by hand or by jaxatt 0.1)."""
     status = d.get("status")
-    if status is None or status in FINISHED:
+    if status is None or status in FINISHED or _is_shipped(path):  # shipped files say how they were made (notes)
         return None
     best = d.get("best_step")
     return (
@@ -137,24 +137,50 @@ def unfinished_note(d: Mapping[str, Any], path) -> Optional[str]:
     )
 
 
+def _is_shipped(path) -> bool:
+    import pathlib
+
+    try:
+        return pathlib.Path(path).resolve().parent == pathlib.Path(str(resources.files("jaxatt.data.gains"))).resolve()
+    except (OSError, TypeError, ValueError):
+        return False
+
+
 def read(path) -> dict:
     """Read a gains file (this format or jaxatt 0.1's) as this format's dict. ValueError naming the file when it is
     missing, not JSON or not a gains file."""
     d = io.read_json(path, "gains file")
+    if not isinstance(d, dict):
+        raise ValueError(f"gains file {path}: not a jaxatt gains file (a JSON {type(d).__name__}, want an object)")
     fmt = d.get("format")
     if fmt == FORMAT:
-        if not isinstance(d.get("gains"), dict) or not d.get("observer"):
-            raise ValueError(f"gains file {path}: needs 'observer' and 'gains'")
-        return d
+        if not isinstance(d.get("gains"), dict) or not isinstance(d.get("observer"), str) or not d["observer"]:
+            raise ValueError(f"gains file {path}: needs 'observer' (a name) and 'gains' (an object)")
+        return _checked(d, path)
     if fmt == _OLD and isinstance(d.get("gains"), dict):
         if "experiment" in d:  # jaxatt tune (0.1): its keys under this format's names
             study = d["experiment"]
+            if not isinstance(study, str):
+                raise ValueError(f"gains file {path}: 'experiment' must be a study name, got {study!r}")
             renamed = {_RENAMED.get(k, k): v for k, v in d.items()}
-            return {**renamed, "format": FORMAT, "observer": STUDY_OBSERVER.get(study, study), "study": study}
-        if "observer" in d:  # jaxatt broad-tune (0.1): {name: number}
+            out = {**renamed, "format": FORMAT, "observer": STUDY_OBSERVER.get(study, study), "study": study}
+            return _checked(out, path)
+        if isinstance(d.get("observer"), str):  # jaxatt broad-tune (0.1): {name: number}
             gains = {k: (v if isinstance(v, Mapping) else {"value": v}) for k, v in d["gains"].items()}
-            return {**d, "format": FORMAT, "study": None, "gains": gains}
+            return _checked({**d, "format": FORMAT, "study": None, "gains": gains}, path)
     raise ValueError(f"gains file {path}: not a jaxatt gains file (format {fmt!r}, want {FORMAT!r})")
+
+
+def _checked(d: dict, path) -> dict:
+    """``d`` after the checks every reader relies on (ValueError naming the file and the key)."""
+    for name, entry in d["gains"].items():
+        if not isinstance(entry, Mapping) or "value" not in entry:
+            raise ValueError(f"gains file {path}: gain {name!r} must be an object with a 'value'")
+    if d.get("study") is not None and not isinstance(d["study"], str):
+        raise ValueError(f"gains file {path}: 'study' must be a study name or null, got {d['study']!r}")
+    if not isinstance(d.get("settings", {}), dict):
+        raise ValueError(f"gains file {path}: 'settings' must be an object, got {d['settings']!r}")
+    return d
 
 
 def apply(params, gains: Mapping[str, Any], *, source: str = "gains"):
@@ -174,7 +200,12 @@ def apply(params, gains: Mapping[str, Any], *, source: str = "gains"):
             raise ValueError(f"{source}: {name} is not finite: {val!r}")
         ref = jnp.asarray(values[name])
         if isinstance(entry, Mapping) and "switch_times_s" in entry:
-            st = np.asarray(entry["switch_times_s"], float)
+            try:
+                st = np.asarray(entry["switch_times_s"], float).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"{source}: {name}.switch_times_s must be a list of seconds") from None
+            if "switch_times" not in values or not np.all(np.isfinite(st)) or np.any(np.diff(st) <= 0):
+                raise ValueError(f"{source}: {name}.switch_times_s must be increasing finite seconds of a schedule")
             if arr.shape[:1] != (st.shape[0] + 1,):
                 raise ValueError(f"{source}: {name} has {arr.shape[0]} values for {st.shape[0]} switch times")
             new["switch_times"] = jnp.asarray(st, jnp.asarray(values["switch_times"]).dtype)
@@ -191,11 +222,6 @@ def read_params(path, entry=None, base=None, *, dtype=None):
     paper's params of the file's study when it names one, else the registry entry's defaults in ``dtype``. The file
     must hold gains of that observer (one of an unfinished fit is used with a warning: :func:`unfinished_note`)."""
     d = read(path)
-    note = unfinished_note(d, path)
-    if note:
-        import warnings
-
-        warnings.warn(note, stacklevel=2)
     if entry is not None:
         from ..observers import registry
 
@@ -216,6 +242,11 @@ def read_params(path, entry=None, base=None, *, dtype=None):
             entry.check(params)
         except ValueError as e:
             raise ValueError(f"gains file {path}: {e}") from None
+    note = unfinished_note(d, path)
+    if note:
+        import warnings
+
+        warnings.warn(note, stacklevel=2)
     return params
 
 

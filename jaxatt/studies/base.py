@@ -20,6 +20,7 @@ from __future__ import annotations
 import abc
 import math
 import time
+import zipfile
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import jax
@@ -459,10 +460,16 @@ def _read_runs(path, spec: str) -> Dict[str, Any]:
     if not os.path.exists(path):
         return {}
     try:
-        with np.load(path) as z:
+        z = np.load(path)
+        if not hasattr(z, "files"):  # a bare .npy array, not the archive _write_runs writes
+            raise ValueError("not an .npz archive")
+        with z:
             d = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise ValueError(f"--resume: {path} is not a readable runs file ({e})") from None
+        d["labels"], d["spec"]  # noqa: B018 (both are always written)
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+        raise ValueError(
+            f"--resume: {path} is not a runs file of jaxatt (empty, damaged or another file); delete it to start again"
+        ) from None
     if str(d.get("spec")) != spec:
         raise ValueError(
             f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision or gains differ); "

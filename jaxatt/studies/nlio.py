@@ -41,6 +41,7 @@ from .. import so3
 from ..observers import mekf as mekf_mod
 from ..observers import nlio as nlio_mod
 from ..sim import ahrs
+from ..types import check_step_count
 from . import base
 
 NAME = "nlio"
@@ -238,6 +239,7 @@ def check_config(cfg: Config) -> None:
             raise ValueError(f"unknown observer {o!r}; choose from {sorted(_OBSERVERS)}")
     if not (cfg.dt > 0 and cfg.duration >= cfg.dt):
         raise ValueError(f"need dt > 0 and duration >= dt, got dt={cfg.dt}, duration={cfg.duration}")
+    check_step_count(cfg.duration, cfg.dt)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -491,6 +493,9 @@ def plot_curves(curves: Dict[str, dict], path: str, *, title: str = "", cfg: Opt
     axes[0, 0].legend(fontsize=7)
     if title:
         fig.suptitle(title)
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
