@@ -36,6 +36,10 @@ TUNABLE_STUDIES = ("batista-ges", "batista-so3", "complementary", "nlio-case1", 
 SCENARIOS = ("rotating", "switching", "constant", "two-constant", "body-fixed")
 
 
+#: Most optimiser steps one ``tune`` / ``broad-tune`` may ask for (a typo's 10**24 would run forever).
+MAX_FIT_STEPS = 10**6
+
+
 class UserError(Exception):
     """A bad input caught by the CLI (one line, exit 2)."""
 
@@ -259,7 +263,7 @@ def _parser() -> argparse.ArgumentParser:
 
     tp = sub.add_parser("tune", help="tune a study's gains by gradient descent through the Monte Carlo scan")
     tp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
-    tp.add_argument("--steps", type=_count(0), default=100, help="optimiser steps")
+    tp.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=100, help="optimiser steps")
     tp.add_argument("--train-runs", type=_count(1, MAX_RUNS), default=32, help="training seeds")
     tp.add_argument("--val-runs", type=_count(0, MAX_RUNS), default=16, help="validation seeds (early stopping)")
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
@@ -314,7 +318,7 @@ def _parser() -> argparse.ArgumentParser:
     bt.add_argument("--data-dir", required=True)
     bt.add_argument("--observer", default="robust")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
-    bt.add_argument("--steps", type=_count(0), default=150)
+    bt.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=150)
     bt.add_argument("--lr", type=_positive, default=0.05, help="Adam learning rate on log-gains")
     bt.add_argument("--init-gains", default=None, help="start from this gains file (default: untuned defaults)")
     bt.add_argument("--float64", action="store_true", help="tune in float64 (default float32: faster)")
@@ -954,7 +958,9 @@ def _excitation(args) -> int:
             raise UserError("--mag-ref: the magnetic reference must be a non-zero vector (its direction is used)")
         refs_ = [frames.up(args.frame)] if "acc" in fields else []
         if "mag" in fields:
-            refs_.append(np.asarray(args.mag_ref, float))
+            m = np.asarray(args.mag_ref, float)
+            m = m / np.max(np.abs(m))  # only the direction is used: scaled first, so 1e300 or 1e-320 stay finite
+            refs_.append(m / np.linalg.norm(m))
         p = comp.default_params(len(refs_), 0, ref_inertial=np.stack(refs_))
         res = analysis.excitation_from_samples(samples, window=args.window, params=p, imu_fields=fields)
         source = f"log {args.log} ({', '.join(fields)}; references in {args.frame})"
