@@ -192,6 +192,8 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01), "params are required"),
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params="g.json"), "read_params\\(path, base="),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, frame="XYZ"), "frame"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=np.full(len(g), 0.01)), r"dt must be one number.*give t"),
+        (lambda g, a, m: jaxatt.api.ahrs_scenario(mag_ref_enu="abc"), "mag_ref_nav must be numbers"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
         (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),

@@ -171,13 +171,21 @@ class AhrsScenario(NamedTuple):
 
         Raises ValueError on non-finite or negative settings."""
         dtype = dtype or jnp.result_type(float)
-        acc_ref = np.array([0.0, 0.0, gravity]) if acc_ref_nav is None else np.asarray(acc_ref_nav, float)
-        b0, b1, bs = (0.0, 0.0, 1.0) if burst is None else tuple(float(x) for x in burst)
-        r0 = np.eye(3) if r0 is None else np.asarray(r0, float)
+
+        def numbers(name, v):
+            try:
+                return np.asarray(v, float)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be numbers, got {v!r}") from None
+
+        acc_ref = np.array([0.0, 0.0, gravity]) if acc_ref_nav is None else numbers("acc_ref_nav", acc_ref_nav)
+        mag_ref_nav = numbers("mag_ref_nav", mag_ref_nav)
+        b0, b1, bs = (0.0, 0.0, 1.0) if burst is None else tuple(numbers("burst", burst).reshape(-1))
+        r0 = np.eye(3) if r0 is None else numbers("r0", r0)
         for name, v, shape in (
             ("acc_ref_nav", acc_ref, (3,)),
-            ("mag_ref_nav", np.asarray(mag_ref_nav, float), (3,)),
-            ("gyro_bias", np.asarray(gyro_bias, float), (3,)),
+            ("mag_ref_nav", mag_ref_nav, (3,)),
+            ("gyro_bias", numbers("gyro_bias", gyro_bias), (3,)),
             ("r0", r0, (3, 3)),
         ):
             if v.shape != shape or not np.all(np.isfinite(v)):
