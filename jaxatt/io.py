@@ -61,7 +61,7 @@ def check_output_path(
     creates it, probes it and removes what it created) and is writable, and ``path`` is not a folder; with
     ``suffixes`` (such as (".csv", ".npz"), "" for none), that its extension is one of them (a device or FIFO is
     exempt); with ``inputs`` ({flag: path} of the files or folders the command reads), that it is none of those
-    files and not inside those folders (writing would destroy an input). Returns the Path (None for None).
+    files nor an existing file in those folders (writing would destroy an input). Returns the Path (None for None).
     ValueError naming ``flag``."""
     if path is None:
         return None
