@@ -612,7 +612,10 @@ def _fit_status(res) -> int:
     if res.status == "interrupted":
         return 130
     if res.status == "non-finite":
-        print("jaxatt: error: the loss or its gradient was not finite three steps in a row", file=sys.stderr)
+        print(
+            "jaxatt: error: the loss or its gradient was not finite (three steps in a row, or at the last step)",
+            file=sys.stderr,
+        )
         return 1
     return 0
 

@@ -259,6 +259,7 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--duration", "1e300"], r"steps per run"),
     (["tune", "--experiment", "batista-so3", "--val-runs", "1" + "0" * 20], r"argument --val-runs: must be <="),
     (["filter", "--log", "{d}/missing.csv", "--out", "{d}/new_folder/a.csv"], r"not found"),
+    (["simulate", "--observer", "complementary", *MC, "--plot", "{d}/c.png"], r"--plot: complementary has no figure"),
     (["broad-tune", "--data-dir", "{d}/trials_ok", "--steps", "1" + "0" * 24], r"argument --steps: must be <="),
     (["reproduce", "batista-so3", *MC, "--json", "{d}/empty_runs.json", "--resume"], r"not a runs file of jaxatt"),
 ]

@@ -476,3 +476,16 @@ def test_an_observer_module_that_fails_to_import_is_one_line(tmp_path, monkeypat
     assert rc == 2 and err.count("\n") == 0, err
     assert "--observer broken_filter:X: importing broken_filter failed at broken_filter.py:2" in err
     assert "RuntimeError: the user's bug" in err and not (tmp_path / "est.csv").exists()
+
+
+def test_a_tune_that_ends_on_non_finite_steps_exits_1(tmp_path, capsys):
+    """lr 1e300 makes every step after the first non-finite: a 3-step fit must not report done (exit 1, status
+    non-finite, the finite start kept as the best gains)."""
+    out = tmp_path / "g.json"
+    argv = ["tune", "--experiment", "complementary", "--train-runs", "1", "--val-runs", "0", "--duration", "1"]
+    rc = cli.main([*argv, "--steps", "2", "--lr", "1e300", "--out", str(out), "--quiet"])
+    assert rc == 1 and "not finite" in capsys.readouterr().err
+    d = json.loads(out.read_text())
+    assert d["status"] == "non-finite" and all(
+        np.isfinite(np.asarray(v["value"], float)).all() for v in d["gains"].values()
+    )

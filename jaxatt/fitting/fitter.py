@@ -367,7 +367,7 @@ def optimize(
                     }
                 )
             stop = None
-            if n_nonfinite >= 3:
+            if n_nonfinite >= 3 or (n_nonfinite and step == steps):  # a fit never ends on a non-finite step silently
                 stop = "non-finite"
             elif patience is not None and val_fn is not None and bad >= patience:
                 stop = "early-stopped"

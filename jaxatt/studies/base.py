@@ -278,6 +278,8 @@ def reproduce(
         raise ValueError("--resume needs --json (the finished runs are saved beside it)")
     io.check_output_path(json_path, "--json", suffixes=io.JSON_SUFFIXES)
     io.check_figure_path(plot_path, "--plot")
+    if plot_path and type(study).plot is Study.plot:
+        raise ValueError(f"--plot: {study.name} has no figure (leave --plot out)")
     log = _log(quiet)
     obs = dict(observers) if observers is not None else study.observers(cfg)
     for _, (_, p) in obs.items():
