@@ -98,7 +98,9 @@ def summary(label, per_trial) -> dict:
         for g in ("undisturbed", "disturbed")
     }
     cells = " ".join(f"{n[:2]}:{v['total_rmse_deg']:.2f}" for n, v in sorted(per_trial.items()))
-    print(f"{label:34s} undisturbed {means['undisturbed']:.3f} disturbed {means['disturbed']:.3f} | {cells}", flush=True)
+    print(
+        f"{label:34s} undisturbed {means['undisturbed']:.3f} disturbed {means['disturbed']:.3f} | {cells}", flush=True
+    )
     return {"label": label, "group_means_deg": means, "trials": per_trial}
 
 
