@@ -77,10 +77,10 @@ def check_output_path(
             raise ValueError(f"{flag} {path}: is the {other_flag} file (writing it would destroy the input)")
     if p.exists() and p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder, expected a file name")
-    if suffixes is not None and not _is_special(p) and p.suffix.lower() not in suffixes:
+    if suffixes is not None and not is_special(p) and p.suffix.lower() not in suffixes:
         named = ", ".join(x for x in suffixes if x)
         raise ValueError(f"{flag} {path}: unknown extension {p.suffix!r}; this writes {named}")
-    if _is_special(p):  # /dev/null, a FIFO: written in place (write_atomic), never replaced
+    if is_special(p):  # /dev/null, a FIFO: written in place (write_atomic), never replaced
         if not os.access(p, os.W_OK):
             raise ValueError(f"{flag} {path}: is not writable")
         return p
@@ -130,7 +130,7 @@ def check_figure_path(path, flag: str = "--plot", inputs: Optional[Mapping[str, 
     """:func:`check_output_path` for a figure, and its extension is a format matplotlib writes (png, pdf, svg,
     ...), so that a run is not computed for a figure that cannot be saved. ValueError naming ``flag``."""
     p = check_output_path(path, flag, inputs=inputs)
-    if p is None or _is_special(p):
+    if p is None or is_special(p):
         return p
     from matplotlib.backend_bases import FigureCanvasBase
 
@@ -154,7 +154,7 @@ def is_main_process() -> bool:
     return jax.process_index() == 0
 
 
-def _is_special(p: Path) -> bool:
+def is_special(p) -> bool:
     """True for an existing path that is neither a regular file nor a folder (a character device, a FIFO)."""
     try:
         mode = os.stat(p).st_mode
@@ -170,7 +170,7 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
     if not is_main_process():
         return
     p = Path(path)
-    if _is_special(p):  # a device or FIFO (/dev/null): write into it; renaming over it would replace the device
+    if is_special(p):  # a device or FIFO (/dev/null): write into it; renaming over it would replace the device
         with open(p, "wb" if binary else "w") as f:
             write(f)
         return

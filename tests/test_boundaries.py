@@ -107,6 +107,7 @@ def make_files(d: Path) -> None:
         _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5")
         (d / f"trials_{name}" / "trials.json").write_text(json.dumps(info))
     (d / "empty_runs.json.runs.npz").write_bytes(b"")
+    (d / "runs_folder.json.runs.npz").mkdir()
 
 
 def _run(argv, files, capsys):
@@ -262,6 +263,8 @@ BAD_INPUT = [
     (["simulate", "--observer", "complementary", *MC, "--plot", "{d}/c.png"], r"--plot: complementary has no figure"),
     (["broad-tune", "--data-dir", "{d}/trials_ok", "--steps", "1" + "0" * 24], r"argument --steps: must be <="),
     (["reproduce", "batista-so3", *MC, "--json", "{d}/empty_runs.json", "--resume"], r"not a runs file of jaxatt"),
+    (["reproduce", "batista-so3", *MC, "--json", "{d}/runs_folder.json"], r"runs file saved beside it.*is a folder"),
+    (["reproduce", "batista-so3", *MC, "--json", "/dev/null", "--resume"], r"--resume needs --json of a file"),
 ]
 
 
@@ -508,6 +511,30 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(tmp_path, uninterrupte
     assert got["complete"] and got["runs_done"] == 6
     for name, m in ref["metrics"].items():
         np.testing.assert_array_equal(got["metrics"][name]["per_run"], m["per_run"], err_msg=name)
+
+
+def test_resume_with_plot_added_is_refused_before_computing(tmp_path):
+    """The NLIO studies keep finer traces for --plot: runs saved without it cannot be resumed with it (their
+    averaged curves would mix spacings); refused at the start, naming --plot."""
+    from jaxatt import studies
+
+    study = studies.get("nlio-case1")
+    cfg = study.config(duration=2.0)
+    obs = dict(list(study.observers(cfg).items())[:1])  # one observer: the cheapest runs file
+    out = tmp_path / "r.json"
+    studies.reproduce(study, cfg, runs=1, json_path=str(out), quiet=True, observers=obs)
+    with pytest.raises(ValueError, match=r"--resume: .*another set-up.*--plot"):
+        studies.reproduce(
+            study,
+            cfg,
+            runs=1,
+            json_path=str(out),
+            quiet=True,
+            observers=obs,
+            plot_path=str(tmp_path / "p.png"),
+            resume=True,
+        )
+    assert not (tmp_path / "p.png").exists()
 
 
 def test_sigint_without_an_earlier_result_writes_the_partial_json(tmp_path):

@@ -353,6 +353,36 @@ def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
     assert "mean_angle_error_deg" in capsys.readouterr().out
 
 
+def test_evaluate_interrupted_in_the_paper_comparison_is_incomplete_and_resumes(ges, tmp_path, monkeypatch):
+    """Ctrl-C while the paper's gains run (evaluate's second Monte Carlo) leaves ``complete: false`` and no
+    comparison in the JSON; ``resume=True`` takes the saved tuned runs and finishes the comparison."""
+    prob, _, _, _, _ = ges
+    p = prob.setup.params
+    tuned = p._replace(alpha2=0.5 * p.alpha2)
+    study = studies.get("batista-ges")
+    out = tmp_path / "eval.json"
+    kw = dict(runs=2, seed=0, json_path=str(out), cfg=study.config(duration=DURATION), quiet=True)
+    real, calls = montecarlo.monte_carlo, []
+
+    def interrupted_second_call(*a, **k):
+        calls.append(k.get("previous"))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(montecarlo, "monte_carlo", interrupted_second_call)
+    payload = studies.evaluate(study, tuned, **kw)
+    saved = json.loads(out.read_text())
+    assert not payload["complete"] and not saved["complete"] and "comparison" not in saved
+    assert saved["runs_done"] == 2  # the tuned runs are kept
+    calls.clear()
+    monkeypatch.setattr(montecarlo, "monte_carlo", lambda *a, **k: calls.append(1) or real(*a, **k))
+    payload = studies.evaluate(study, tuned, resume=True, **kw)
+    saved = json.loads(out.read_text())
+    assert saved["complete"] and "comparison" in saved
+    assert len(calls) == 1  # only the paper's gains ran: the tuned runs came from the runs file
+
+
 def test_nlio_case_gradient_matches_finite_differences():
     """nlio-case1 (NLIO-FG, random initial estimate, Euler-angle loss): the gradient along a direction in the
     unconstrained gains (Kp, kv, K1, K2 Cholesky / log) matches a central difference of the loss."""

@@ -274,9 +274,10 @@ def reproduce(
 
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
-    if resume and not json_path:
-        raise ValueError("--resume needs --json (the finished runs are saved beside it)")
+    if resume and not runs_file(json_path):
+        raise ValueError("--resume needs --json of a file (the finished runs are saved beside it)")
     io.check_output_path(json_path, "--json", suffixes=io.JSON_SUFFIXES)
+    io.check_output_path(runs_file(json_path), "--json (the runs file saved beside it)")
     io.check_figure_path(plot_path, "--plot")
     if plot_path and type(study).plot is Study.plot:
         raise ValueError(f"--plot: {study.name} has no figure (leave --plot out)")
@@ -285,7 +286,8 @@ def reproduce(
     for _, (_, p) in obs.items():
         study.check_params(p)
     dtype_name = str(np.dtype(dtype if dtype is not None else jax.numpy.result_type(float)))
-    spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs)
+    trace_every, trace_fn = study.trace(cfg, bool(plot_path))
+    spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every)
     saved = _read_runs(runs_file(json_path), spec) if resume else {}
     if resume:
         n = min((len(r.run_indices) for r in saved.values()), default=0) if len(saved) == len(obs) else 0
@@ -310,7 +312,6 @@ def reproduce(
     if why is not None:
         payload["not_comparable_because"] = why
     payload.update(extra or {})
-    trace_every, trace_fn = study.trace(cfg, bool(plot_path))
     results: Dict[str, Any] = {}
     t_all = time.perf_counter()
     complete = True
@@ -336,7 +337,7 @@ def reproduce(
             log(f"  {label}: {len(res.run_indices)}/{runs} runs, {time.perf_counter() - t_all:.1f} s")
             payload["observers"][label] = entry(res)
             _finish(payload, complete=False)
-            if json_path:
+            if runs_file(json_path):
                 _write_runs(runs_file(json_path), spec, {**results, label: res})
             if not keep_complete:
                 io.write_json(json_path, payload)
@@ -401,7 +402,7 @@ def reproduce(
         study.plot(cfg, payload, results, plot_path, dtype=dtype)
         payload["plot"] = plot_path
         print(f"plot written to {plot_path}")
-    if json_path:
+    if runs_file(json_path):
         _write_runs(runs_file(json_path), spec, results)
     if payload["complete"] or not keep_complete:
         io.write_json(json_path, payload)
@@ -409,18 +410,22 @@ def reproduce(
             print(f"results written to {json_path}" + ("" if payload["complete"] else " (complete: false)"))
     else:
         print(f"the complete result already in {json_path} is kept")
-    if json_path and not payload["complete"]:
+    if runs_file(json_path) and not payload["complete"]:
         print(f"finished runs saved in {runs_file(json_path)}: rerun with --resume to finish")
     return payload
 
 
 def runs_file(json_path) -> Optional[str]:
-    """Where :func:`reproduce` saves the finished runs of ``json_path`` (for ``resume``): ``<json_path>.runs.npz``."""
-    return f"{json_path}.runs.npz" if json_path else None
+    """Where :func:`reproduce` saves the finished runs of ``json_path`` (for ``resume``): ``<json_path>.runs.npz``;
+    None without ``json_path`` or when it is a device or FIFO such as /dev/null (nothing is saved to resume)."""
+    if not json_path or io.is_special(json_path):
+        return None
+    return f"{json_path}.runs.npz"
 
 
-def _runs_spec(study, cfg, runs, seed, dtype_name, obs) -> str:
-    """What must match for saved runs to be resumed: study, config, runs, seed, precision, labels and gains."""
+def _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every=None) -> str:
+    """What must match for saved runs to be resumed: study, config, runs, seed, precision, labels, gains and the
+    spacing of the saved traces (``--plot`` keeps them finer)."""
     import json
 
     gains = {label: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(p)] for label, (_, p) in obs.items()}
@@ -432,6 +437,7 @@ def _runs_spec(study, cfg, runs, seed, dtype_name, obs) -> str:
             "seed": seed,
             "dtype": dtype_name,
             "gains": gains,
+            "trace_every": trace_every,
         },
         sort_keys=True,
         default=str,
@@ -474,7 +480,8 @@ def _read_runs(path, spec: str) -> Dict[str, Any]:
         ) from None
     if str(d.get("spec")) != spec:
         raise ValueError(
-            f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision or gains differ); "
+            f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision, gains "
+            "or --plot differ); "
             "rerun with the same flags, or without --resume to start again"
         )
     out = {}
@@ -558,18 +565,30 @@ def evaluate(
         for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params))
     )
     if compare_paper and not same and payload["complete"]:
-        ref = reproduce(
-            study,
-            cfg,
-            runs=runs,
-            seed=seed,
-            chunk=chunk,
-            dtype=dtype,
-            json_path=None,
-            quiet=True,
-            title=f"{study.name} paper gains",
-            observers={study.tuned: (s.observer, s.params)},
-        )
+        try:
+            ref = reproduce(
+                study,
+                cfg,
+                runs=runs,
+                seed=seed,
+                chunk=chunk,
+                dtype=dtype,
+                json_path=None,
+                quiet=True,
+                title=f"{study.name} paper gains",
+                observers={study.tuned: (s.observer, s.params)},
+            )
+        except KeyboardInterrupt:  # before its first chunk finished
+            ref = {"complete": False, "runs_done": 0}
+        if not ref["complete"]:  # interrupted: the tuned runs are saved, the comparison is run again on resume
+            payload["complete"] = False
+            payload["paper_gains_runs_done"] = ref["runs_done"]
+            io.write_json(json_path, payload)
+            print(
+                f"INTERRUPTED during the comparison with the paper's gains ({ref['runs_done']}/{runs} runs): "
+                "no comparison written" + (f"; rerun with --resume to finish {json_path}" if json_path else "")
+            )
+            return payload
         pm = ref["metrics"]
         metrics = payload["metrics"]
         payload["paper_gains_metrics"] = pm
