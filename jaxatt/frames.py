@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from .types import check_shape
+
 __all__ = [
     "FRAMES",
     "frame_rotation",
@@ -101,17 +103,32 @@ def _qmul_np(a, b):
     )
 
 
+def _real(x, name: str) -> np.ndarray:
+    """``x`` as a numpy array of floats: a float dtype is kept, integers become float64 (numpy's default float);
+    TypeError naming ``name`` for anything else (bool, complex, text, objects)."""
+    a = np.asarray(x)
+    if np.issubdtype(a.dtype, np.floating):
+        return a
+    if np.issubdtype(a.dtype, np.integer):
+        return a.astype(np.float64)
+    raise TypeError(f"{name} must be real numbers, got dtype {a.dtype}")
+
+
 def change_frame(q, to: str, frm: str = "ENU"):
     """Sensor-to-``frm`` quaternions (..., 4), (w, x, y, z), re-expressed as sensor-to-``to``: q_to = c (x) q_frm
-    with c the quaternion of :func:`frame_rotation`. numpy in, numpy out (the dtype of ``q`` is kept)."""
-    q = np.asarray(q)
+    with c the quaternion of :func:`frame_rotation`. numpy in, numpy out (a float dtype of ``q`` is kept, integers
+    become float64)."""
+    check_shape(q, "change_frame: q", (4,))
+    q = _real(q, "change_frame: q")
     c = _matrix_to_quat_np(frame_rotation(to, frm))
     return _qmul_np(c.astype(q.dtype), q).astype(q.dtype, copy=False)
 
 
 def change_vector_frame(v, to: str, frm: str = "ENU"):
-    """Vectors (..., 3) given in ``frm`` coordinates, in ``to`` coordinates (numpy; dtype kept)."""
-    v = np.asarray(v)
+    """Vectors (..., 3) given in ``frm`` coordinates, in ``to`` coordinates (numpy; a float dtype is kept, integers
+    become float64)."""
+    check_shape(v, "change_vector_frame: v", (3,))
+    v = _real(v, "change_vector_frame: v")
     return (v @ frame_rotation(to, frm).T.astype(v.dtype)).astype(v.dtype, copy=False)
 
 
@@ -121,24 +138,31 @@ def up(frame: str) -> np.ndarray:
 
 
 def to_xyzw(q):
-    """(w, x, y, z) -> (x, y, z, w) (scipy's order); works on numpy and jax arrays."""
-    return q[..., [1, 2, 3, 0]]
+    """(w, x, y, z) -> (x, y, z, w) (scipy's order), shape (..., 4); works on numpy and jax arrays."""
+    check_shape(q, "to_xyzw: q", (4,))
+    return (q if hasattr(q, "shape") else np.asarray(q))[..., [1, 2, 3, 0]]
 
 
 def from_xyzw(q):
-    """(x, y, z, w) -> (w, x, y, z); works on numpy and jax arrays."""
-    return q[..., [3, 0, 1, 2]]
+    """(x, y, z, w) -> (w, x, y, z), shape (..., 4); works on numpy and jax arrays."""
+    check_shape(q, "from_xyzw: q", (4,))
+    return (q if hasattr(q, "shape") else np.asarray(q))[..., [3, 0, 1, 2]]
 
 
 def to_scipy(q) -> Any:
     """A ``scipy.spatial.transform.Rotation`` of (..., 4) (w, x, y, z) quaternions (needs scipy)."""
     from scipy.spatial.transform import Rotation
 
-    return Rotation.from_quat(to_xyzw(np.asarray(q, float)))
+    check_shape(q, "to_scipy: q", (4,))
+    return Rotation.from_quat(to_xyzw(_real(q, "to_scipy: q").astype(float)))
 
 
 def from_scipy(rotation) -> np.ndarray:
     """(w, x, y, z) quaternions (..., 4) of a ``scipy.spatial.transform.Rotation``, w >= 0."""
+    if not callable(getattr(rotation, "as_quat", None)):
+        raise TypeError(
+            f"from_scipy: rotation must be a scipy.spatial.transform.Rotation, got {type(rotation).__name__}"
+        )
     q = from_xyzw(np.asarray(rotation.as_quat(), float))
     return np.where(q[..., :1] < 0, -q, q)
 

@@ -11,6 +11,9 @@ Conventions (used across jaxatt):
 Every function broadcasts over leading axes and is safe under ``jit``, ``vmap`` and ``grad``: branches at
 angle 0 and angle pi use the "double where" trick so that no NaN reaches a gradient (Euler angles excepted at
 gimbal lock, where they are not defined).
+
+Each public function checks the shapes of its arguments (ValueError naming the argument): a static check that
+runs once when a jitted function is traced, so it costs nothing inside an observer's compiled step.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .types import check_shape
 
 __all__ = [
     "skew",
@@ -60,12 +65,25 @@ __all__ = [
 # --------------------------------------------------------------------------------------------------------
 def mm(a: jax.Array, b: jax.Array) -> jax.Array:
     """Matrix product of (..., n, k) and (..., k, m) arrays as a fused broadcast-sum (for tiny matrices)."""
+    sa, sb = check_shape(a, "mm: a", (None, None)), check_shape(b, "mm: b", (None, None))
+    if sa[-1] != sb[-2]:
+        raise ValueError(f"mm: a (..., n, k) and b (..., k, m) must agree in k, got shapes {sa} and {sb}")
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def mv(a: jax.Array, v: jax.Array) -> jax.Array:
     """Matrix-vector product of (..., n, k) and (..., k) arrays as a fused broadcast-sum."""
+    sa, sv = check_shape(a, "mv: a", (None, None)), check_shape(v, "mv: v", (None,))
+    if sa[-1] != sv[-1]:
+        raise ValueError(f"mv: a (..., n, k) and v (..., k) must agree in k, got shapes {sa} and {sv}")
     return jnp.sum(a * v[..., None, :], axis=-1)
+
+
+def _as_float(x) -> jax.Array:
+    """``x`` as a jax array of an inexact dtype: integers and bools become the default float (float32, or float64
+    with x64 on), as ``jnp.asarray(x, float)``; float and complex dtypes are kept."""
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
 #: Levi-Civita symbol: (a x b)_i = eps_ijk a_j b_k and S(x)_ik = eps_ijk x_j.
@@ -79,6 +97,8 @@ def cross(a: jax.Array, b: jax.Array) -> jax.Array:
     to one rounding per component (the other terms are exact zeros; XLA may fuse a product into the sum), and its
     derivative is a broadcast and a sum where the component formula's is slices, a stack and their pads: reverse
     mode through an observer's step compiles to about half the program (batista-so3's scan: 8.6 -> 3.6 s)."""
+    check_shape(a, "cross: a", (3,))
+    check_shape(b, "cross: b", (3,))
     e = jnp.asarray(_LEVI_CIVITA, jnp.result_type(a, b))
     return jnp.sum(e * a[..., None, :, None] * b[..., None, None, :], axis=(-2, -1))
 
@@ -86,15 +106,23 @@ def cross(a: jax.Array, b: jax.Array) -> jax.Array:
 def skew(x: jax.Array) -> jax.Array:
     """Skew-symmetric matrix S(x), shape (..., 3, 3), with S(x) y = x x y (a Levi-Civita contraction, like
     :func:`cross`)."""
+    check_shape(x, "skew: x", (3,))
     x = jnp.asarray(x)
     return jnp.sum(jnp.asarray(_LEVI_CIVITA, x.dtype) * x[..., None, :, None], axis=-2)
 
 
 def vex(m: jax.Array) -> jax.Array:
     """Inverse of :func:`skew` applied to the skew part of ``m``: vex((M - M^T)/2), shape (..., 3)."""
+    check_shape(m, "vex: m", (3, 3))
     return 0.5 * jnp.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
     )
+
+
+def _what(x) -> str:
+    if isinstance(x, (tuple, list)):
+        return f"{len(x)} items"
+    return f"shape {tuple(x.shape)}" if hasattr(x, "shape") else type(x).__name__
 
 
 def _safe_norm(x: jax.Array, eps: float) -> tuple[jax.Array, jax.Array]:
@@ -113,7 +141,8 @@ def _tiny(dtype) -> float:
 # --------------------------------------------------------------------------------------------------------
 def exp(phi: jax.Array) -> jax.Array:
     """Rotation matrix exp(S(phi)) for a rotation vector ``phi`` (rad, shape (..., 3)), Rodrigues' formula."""
-    phi = jnp.asarray(phi)
+    check_shape(phi, "exp: phi", (3,))
+    phi = _as_float(phi)
     th2 = jnp.sum(phi * phi, axis=-1)
     small = th2 < _tiny(phi.dtype) ** 2 * 100
     th2_safe = jnp.where(small, 1.0, th2)
@@ -131,11 +160,14 @@ def exp(phi: jax.Array) -> jax.Array:
 def reorthonormalize(r: jax.Array) -> jax.Array:
     """One Newton-Schulz step R (3I - R^T R) / 2 towards the nearest rotation: an identity on SO(3), it removes
     the rounding drift that accumulates when a rotation is updated step after step (error e -> O(e^2))."""
+    check_shape(r, "reorthonormalize: r", (3, 3))
     return mm(r, 1.5 * jnp.eye(3, dtype=r.dtype) - 0.5 * mm(jnp.swapaxes(r, -1, -2), r))
 
 
 def log(r: jax.Array) -> jax.Array:
-    """Rotation vector (rad, shape (..., 3)) of a rotation matrix, angle in [0, pi]; exact near 0 and pi."""
+    """Rotation vector (rad, shape (..., 3)) of a rotation matrix (..., 3, 3), angle in [0, pi]; exact near 0 and
+    pi."""
+    check_shape(r, "log: r", (3, 3))
     return 2.0 * _quat_log_half(quat_canonical(matrix_to_quat(r)))
 
 
@@ -152,7 +184,8 @@ def _quat_log_half(q: jax.Array) -> jax.Array:
 # Quaternions (w, x, y, z), Hamilton product
 # --------------------------------------------------------------------------------------------------------
 def quat_to_matrix(q: jax.Array) -> jax.Array:
-    """Rotation matrix of a quaternion (w, x, y, z); the quaternion is normalised first."""
+    """Rotation matrix (..., 3, 3) of a quaternion (..., 4) (w, x, y, z); the quaternion is normalised first."""
+    check_shape(q, "quat_to_matrix: q", (4,))
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return jnp.stack(
@@ -166,7 +199,9 @@ def quat_to_matrix(q: jax.Array) -> jax.Array:
 
 
 def matrix_to_quat(r: jax.Array) -> jax.Array:
-    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method; sign is arbitrary)."""
+    """Unit quaternion (..., 4) (w, x, y, z) of a rotation matrix (..., 3, 3) (Shepperd's method; sign is
+    arbitrary)."""
+    check_shape(r, "matrix_to_quat: r", (3, 3))
     m00, m01, m02 = r[..., 0, 0], r[..., 0, 1], r[..., 0, 2]
     m10, m11, m12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
     m20, m21, m22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
@@ -194,7 +229,9 @@ def matrix_to_quat(r: jax.Array) -> jax.Array:
 
 
 def quat_multiply(p: jax.Array, q: jax.Array) -> jax.Array:
-    """Hamilton product p * q of (w, x, y, z) quaternions (rotation p after... i.e. R(p) @ R(q))."""
+    """Hamilton product p * q of (..., 4) (w, x, y, z) quaternions (rotation p after... i.e. R(p) @ R(q))."""
+    check_shape(p, "quat_multiply: p", (4,))
+    check_shape(q, "quat_multiply: q", (4,))
     pw, pv = p[..., :1], p[..., 1:]
     qw, qv = q[..., :1], q[..., 1:]
     w = pw * qw - jnp.sum(pv * qv, -1, keepdims=True)
@@ -204,7 +241,12 @@ def quat_multiply(p: jax.Array, q: jax.Array) -> jax.Array:
 
 def quat_multiply_parts(p: tuple, q: tuple) -> tuple:
     """Hamilton product p (x) q of quaternions given as 4-tuples of component arrays (w, x, y, z): the form the
-    elementwise filters use (a tuple of arrays fuses better on CPU than one stacked array)."""
+    elementwise filters use (a tuple of arrays fuses better on CPU than one stacked array). An array of shape
+    (4, ...) is taken as its 4 rows."""
+    for name, x in (("p", p), ("q", q)):
+        n = len(x) if isinstance(x, (tuple, list)) else (getattr(x, "shape", ()) or (None,))[0]
+        if n != 4:
+            raise ValueError(f"quat_multiply_parts: {name} must be 4 arrays (w, x, y, z), got {_what(x)}")
     pw, px, py, pz = p
     qw, qx, qy, qz = q
     return (
@@ -216,12 +258,14 @@ def quat_multiply_parts(p: tuple, q: tuple) -> tuple:
 
 
 def quat_conjugate(q: jax.Array) -> jax.Array:
-    """Conjugate (inverse for unit quaternions) of a (w, x, y, z) quaternion."""
+    """Conjugate (inverse for unit quaternions) of (..., 4) (w, x, y, z) quaternions."""
+    check_shape(q, "quat_conjugate: q", (4,))
     return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
 def quat_canonical(q: jax.Array) -> jax.Array:
-    """The representative of +-q with w >= 0."""
+    """The representative of +-q with w >= 0, for (..., 4) (w, x, y, z) quaternions."""
+    check_shape(q, "quat_canonical: q", (4,))
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
@@ -236,6 +280,7 @@ def nearest_rotation(m: jax.Array) -> jax.Array:
     derivative is the polar-decomposition derivative, finite at rotations (where the SVD's own derivative
     divides by zero between equal singular values).
     """
+    check_shape(m, "nearest_rotation: m", (3, 3))
     u, _, vt = jnp.linalg.svd(m)
     d = jnp.sign(det3(mm(u, vt)))
     u = u.at[..., :, 2].multiply(d[..., None])
@@ -254,6 +299,8 @@ def polar_tangent(r: jax.Array, m: jax.Array, dm: jax.Array) -> jax.Array:
     ``dm``: d r = r S(w) with (tr(h) I - h) w = 2 vex(r^T dm). Finite at rotations, where the SVD's own
     derivative divides by zero between equal singular values; the 3x3 solve is written out (cofactors), so it
     fuses into the step of an observer."""
+    for name, x in (("r", r), ("m", m), ("dm", dm)):
+        check_shape(x, f"polar_tangent: {name}", (3, 3))
     h = mm(jnp.swapaxes(r, -1, -2), m)
     h = 0.5 * (h + jnp.swapaxes(h, -1, -2))
     a = jnp.trace(h, axis1=-2, axis2=-1)[..., None, None] * jnp.eye(3, dtype=m.dtype) - h
@@ -264,6 +311,7 @@ def polar_tangent(r: jax.Array, m: jax.Array, dm: jax.Array) -> jax.Array:
 
 def cofactor(m: jax.Array) -> jax.Array:
     """Cofactor matrix of (..., 3, 3) arrays: rows r2 x r3, r3 x r1, r1 x r2 (so m^-T = cofactor / det)."""
+    check_shape(m, "cofactor: m", (3, 3))
     r1, r2, r3 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
     return jnp.stack([cross(r2, r3), cross(r3, r1), cross(r1, r2)], axis=-2)
 
@@ -279,6 +327,7 @@ def polar_newton(m: jax.Array, iterations: int = 5) -> jax.Array:
     polar factor's (:func:`polar_tangent`), not the iteration's: the same where the iteration has converged,
     and a gradient then keeps no intermediate of the iterations.
     """
+    check_shape(m, "polar_newton: m", (3, 3))
     x = m
     for _ in range(iterations):
         x = 0.5 * (x + cofactor(x) / det3(x)[..., None, None])
@@ -294,11 +343,13 @@ def _polar_newton_jvp(iterations, primals, tangents):
 
 def det3(r: jax.Array) -> jax.Array:
     """Determinant of (..., 3, 3) matrices as r0 . (r1 x r2) (fuses; no LU call)."""
+    check_shape(r, "det3: r", (3, 3))
     return jnp.sum(r[..., 0, :] * cross(r[..., 1, :], r[..., 2, :]), axis=-1)
 
 
 def orthogonality_error(r: jax.Array) -> jax.Array:
-    """||R^T R - I||_F, shape (...)."""
+    """||R^T R - I||_F, shape (...), of (..., 3, 3) matrices."""
+    check_shape(r, "orthogonality_error: r", (3, 3))
     e = mm(jnp.swapaxes(r, -1, -2), r) - jnp.eye(3, dtype=r.dtype)
     return jnp.sqrt(jnp.sum(e * e, axis=(-2, -1)))
 
@@ -311,13 +362,17 @@ def angle_of(e: jax.Array) -> jax.Array:
 
     atan2(||vex(E)||, (tr E - 1)/2): accurate at small angles (unlike arccos) and gradient-safe at 0.
     """
+    check_shape(e, "angle_of: e", (3, 3))
+    e = _as_float(e)
     s, small = _safe_norm(vex(e), _tiny(e.dtype) ** 2)
     c = 0.5 * (jnp.trace(e, axis1=-2, axis2=-1) - 1.0)
     return jnp.where(small, jnp.where(c < 0, jnp.pi, 0.0), jnp.arctan2(s, c))
 
 
 def angle_error(r_true: jax.Array, r_est: jax.Array) -> jax.Array:
-    """Angle (rad) of the rotation error R_true^T R_est, shape (...)."""
+    """Angle (rad) of the rotation error R_true^T R_est, shape (...), of (..., 3, 3) rotation matrices."""
+    check_shape(r_true, "angle_error: r_true", (3, 3))
+    check_shape(r_est, "angle_error: r_est", (3, 3))
     return angle_of(mm(jnp.swapaxes(r_true, -1, -2), r_est))
 
 
@@ -334,6 +389,7 @@ def matrix_to_euler_zyx(r: jax.Array) -> EulerZYX:
 
     At pitch = +-90 deg (gimbal lock) roll and yaw are not defined and neither is their gradient.
     """
+    check_shape(r, "matrix_to_euler_zyx: r", (3, 3))
     roll = jnp.arctan2(r[..., 2, 1], r[..., 2, 2])
     horiz = jnp.hypot(r[..., 2, 1], r[..., 2, 2])
     pitch = jnp.arctan2(-r[..., 2, 0], horiz)
@@ -361,7 +417,10 @@ def wrap_angle(a: jax.Array) -> jax.Array:
 
 
 def euler_error_zyx(r_true: jax.Array, r_est: jax.Array) -> EulerZYX:
-    """Roll, pitch, yaw errors (rad): ZYX angles of the estimate minus the truth's, wrapped to (-pi, pi]."""
+    """Roll, pitch, yaw errors (rad): ZYX angles of the estimate minus the truth's, wrapped to (-pi, pi];
+    (..., 3, 3) rotation matrices."""
+    check_shape(r_true, "euler_error_zyx: r_true", (3, 3))
+    check_shape(r_est, "euler_error_zyx: r_est", (3, 3))
     et, ee = matrix_to_euler_zyx(r_true), matrix_to_euler_zyx(r_est)
     return EulerZYX(*(wrap_angle(a - b) for a, b in zip(ee, et)))
 
@@ -370,7 +429,8 @@ def euler_error_zyx(r_true: jax.Array, r_est: jax.Array) -> EulerZYX:
 # Attitude from two vectors
 # --------------------------------------------------------------------------------------------------------
 def unit(v: jax.Array) -> jax.Array:
-    """v / |v| over the last axis, gradient-safe: vectors of norm 0 are returned unchanged."""
+    """v / |v| over the last axis (..., n), gradient-safe: vectors of norm 0 are returned unchanged."""
+    check_shape(v, "unit: v", (None,))
     n2 = jnp.sum(v * v, axis=-1, keepdims=True)
     return v / jnp.sqrt(jnp.where(n2 > 0, n2, 1.0))
 
@@ -385,8 +445,11 @@ def triad(acc: jax.Array, mag: jax.Array, frame: str = "ENU") -> jax.Array:
     magnetometer that is zero or parallel to up (no horizontal component) takes east from the sensor axis least
     aligned with up (the heading is then arbitrary).
     """
-    from .frames import frame_rotation
+    from .frames import check_frame, frame_rotation
 
+    check_shape(acc, "triad: acc", (3,))
+    check_shape(mag, "triad: mag", (3,))
+    frame = check_frame(frame)
     acc, mag = jnp.asarray(acc), jnp.asarray(mag)
     eye = jnp.eye(3, dtype=acc.dtype)
     a2 = jnp.sum(acc * acc, axis=-1, keepdims=True)

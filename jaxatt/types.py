@@ -54,6 +54,26 @@ def check_seed(seed) -> int:
     return int(seed)
 
 
+def check_shape(x, name: str, tail: tuple) -> tuple:
+    """The shape of ``x`` after checking that its last axes are ``tail`` (a size None: any), with any leading batch
+    axes: ``check_shape(q, "q", (4,))`` takes (4,), (T, 4), (B, T, 4). ValueError naming ``name`` otherwise. Reads
+    only the static shape, so it also works on jax tracers (inside ``jit`` / ``vmap`` it runs once, at tracing)."""
+    want = "(..., " + ", ".join("n" if d is None else str(d) for d in tail) + ")"
+    shape = getattr(x, "shape", None)
+    if shape is None:
+        import numpy as np
+
+        try:
+            shape = np.shape(x)
+        except ValueError:  # a ragged nested sequence
+            raise ValueError(f"{name} must be an array of shape {want}, got a ragged sequence") from None
+    shape = tuple(shape)
+    k = len(tail)
+    if len(shape) < k or any(d is not None and s != d for s, d in zip(shape[len(shape) - k :], tail)):
+        raise ValueError(f"{name} must have shape {want}, got {shape}")
+    return shape
+
+
 def _is_numpy_integer(x) -> bool:
     import numpy as np
 

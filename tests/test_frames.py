@@ -72,3 +72,45 @@ def test_check_frame():
     assert frames.check_frame("ned") == "NED"
     with pytest.raises(ValueError, match="frame must be one of ENU, NED, NWU, got 'XYZ'"):
         frames.check_frame("XYZ")
+
+
+def test_change_frame_promotes_integer_quaternions():
+    """An integer quaternion came back as zeros (the frame quaternion, entries sqrt(1/2), was cast to int)."""
+    import jax.numpy as jnp
+
+    want = frames.change_frame(np.array([1.0, 0.0, 0.0, 0.0]), "NED")
+    for q in (jnp.array([1, 0, 0, 0]), np.array([[1, 0, 0, 0]] * 2, np.int64), [1, 0, 0, 0]):
+        got = frames.change_frame(q, "NED")
+        assert got.dtype == np.float64
+        np.testing.assert_allclose(got.reshape(-1, 4)[0], want, atol=1e-15)
+        assert np.linalg.norm(got.reshape(-1, 4)[0]) == pytest.approx(1.0)
+    np.testing.assert_array_equal(frames.change_vector_frame(np.array([1, 2, 3]), "NED"), [2.0, 1.0, -3.0])
+    with pytest.raises(TypeError, match=r"change_frame: q must be real numbers, got dtype bool"):
+        frames.change_frame(np.array([True, False, False, False]), "NED")
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: frames.change_frame(np.zeros(3), "NED"), r"change_frame: q must have shape \(\.\.\., 4\), got \(3,\)"),
+        (lambda: frames.change_frame(np.zeros((2, 5)), "NED"), r"q must have shape \(\.\.\., 4\), got \(2, 5\)"),
+        (
+            lambda: frames.change_vector_frame(np.zeros(4), "NED"),
+            r"change_vector_frame: v must have shape \(\.\.\., 3\)",
+        ),
+        (lambda: frames.to_xyzw(np.zeros(3)), r"to_xyzw: q must have shape \(\.\.\., 4\), got \(3,\)"),
+        (lambda: frames.from_xyzw(np.zeros(5)), r"from_xyzw: q must have shape \(\.\.\., 4\), got \(5,\)"),
+        (lambda: frames.to_scipy(np.zeros((2, 3))), r"to_scipy: q must have shape \(\.\.\., 4\), got \(2, 3\)"),
+        (lambda: frames.from_scipy(np.zeros(4)), r"from_scipy: rotation must be a scipy"),
+    ],
+)
+def test_frames_refuse_wrong_shapes(call, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        call()
+
+
+def test_frames_keep_batches_and_lists():
+    q = _random_quats(6).reshape(2, 3, 4)
+    assert frames.change_frame(q, "NED").shape == (2, 3, 4)
+    np.testing.assert_array_equal(frames.to_xyzw([1.0, 2.0, 3.0, 4.0]), [2.0, 3.0, 4.0, 1.0])
+    np.testing.assert_array_equal(frames.from_xyzw(frames.to_xyzw(q)), q)

@@ -180,3 +180,65 @@ def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
     p.write_text("\n".join(lines) + "\n")
     got = logs.load_csv(p)
     assert np.isnan(got.gyr[4, 1]) and np.isfinite(np.delete(got.gyr, 4, axis=0)).all()
+
+
+_MS = np.array([0, 1, 2, 4], "timedelta64[ms]")  # 1 ms steps (one 2 ms gap)
+
+
+def test_datetime_and_timedelta_timestamps_become_seconds(tmp_path):
+    """datetime64 / timedelta64 timestamps were read as plain numbers of their unit: 1 ms steps became 1 s (and
+    passed the "are the timestamps in ms?" check of jaxatt.filter). Now seconds, from each array's own unit; dates
+    count from the first sample."""
+    gyr = np.zeros((4, 3))
+    want = [0.0, 0.001, 0.002, 0.004]
+    start = np.datetime64("2024-05-01T12:00:00", "ms")
+    cases = {
+        "datetime64[ms]": start + _MS,
+        "datetime64[ns]": (start + _MS).astype("datetime64[ns]"),
+        "timedelta64[us]": _MS.astype("timedelta64[us]"),
+    }
+    for name, t in cases.items():
+        s, _ = logs.check_log(ImuSample(t, gyr))  # arrays (a pandas column reads as datetime64[ns])
+        np.testing.assert_allclose(s.t, want, rtol=0, atol=1e-15, err_msg=name)
+        assert s.t.dtype == np.float64
+        p = tmp_path / "dt.npz"
+        np.savez(p, t=t, gyr=gyr)  # an NPZ of datetime64 / timedelta64
+        np.testing.assert_allclose(logs.load_log(p).t, want, rtol=0, atol=1e-15, err_msg=name)
+    # a timedelta keeps its own origin (elapsed time), it is not re-based on the first sample
+    np.testing.assert_allclose(logs.check_log(ImuSample(_MS + np.timedelta64(5, "s"), gyr))[0].t, np.add(want, 5.0))
+    # CSV: ISO 8601 date-times in t (as pandas writes a datetime column), a UTC offset included
+    p = tmp_path / "dt.csv"
+    p.write_text(
+        "t,gyr_x,gyr_y,gyr_z\n"
+        "2024-05-01 12:00:00.000000,0,0,0\n2024-05-01 12:00:00.001000,0,0,0\n"
+        "2024-05-01T12:00:00.002+00:00,0,0,0\n2024-05-01 12:00:00.004,0,0,0\n"
+    )
+    np.testing.assert_allclose(logs.load_log(p).t, want, rtol=0, atol=1e-15)
+    p.write_text("t,gyr_x,gyr_y,gyr_z\n2024-05-01 12:00:00,0,0,0\n0.5,0,0,0\n")
+    with pytest.raises(ValueError, match=r"dt\.csv: line 3: column 't': '0\.5' is not a date-time like the first"):
+        logs.load_log(p)
+
+
+@pytest.mark.parametrize(
+    "field,value,match",
+    [
+        ("t", np.array(["0.0", "0.1", "0.2", "0.3"]), r"t is not numeric: dtype <U3, expected real numbers"),
+        ("t", np.array([0.0, 0.1, 0.2, 0.3], dtype=object), r"t is not numeric: dtype object"),
+        ("t", np.array([1, 2, 3, 4], "datetime64[M]"), r"t is not numeric: datetime64\[M\] has no fixed length"),
+        ("t", np.array(["2024-01-01", "NaT", "2024-01-03", "2024-01-04"], "datetime64[ns]"), r"t must be finite"),
+        ("gyr", np.zeros((4, 3)).astype(str), r"gyr is not numeric: dtype <U32"),
+        ("acc", np.zeros((4, 3), "timedelta64[s]"), r"acc is not numeric: dtype timedelta64\[s\]"),
+        ("mag", np.zeros((4, 3), bool), r"mag is not numeric: dtype bool"),
+    ],
+)
+def test_non_numeric_fields_are_refused_in_one_line(tmp_path, field, value, match):
+    s = ImuSample(np.arange(4) * 0.01, np.zeros((4, 3)))._replace(**{field: value})
+    with pytest.raises(ValueError, match=match):
+        logs.check_log(s)
+    with pytest.raises(ValueError, match=match):
+        logs.save_log(tmp_path / "x.npz", s)
+    if value.dtype.kind != "O":  # an NPZ cannot hold objects without pickle (its own error, tested above)
+        p = tmp_path / "y.npz"
+        np.savez(p, **{"t": np.arange(4) * 0.01, "gyr": np.zeros((4, 3)), field: value})
+        with pytest.raises(ValueError, match=match):
+            logs.load_log(p)

@@ -640,3 +640,67 @@ def test_triad_recovers_the_rotation_and_stays_a_rotation_on_degenerate_samples(
             np.testing.assert_allclose(m[2], want_up, atol=tol)
     batch = so3.triad(jnp.asarray(np.stack([a, a])), jnp.asarray(np.stack([a, np.zeros(3)])))
     assert batch.shape == (2, 3, 3)
+
+
+_Q3, _V4, _M23 = np.zeros(3), np.zeros(4), np.zeros((2, 3))
+_EYE, _Q1 = np.eye(3), np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: so3.quat_to_matrix(_Q3), r"quat_to_matrix: q must have shape \(\.\.\., 4\), got \(3,\)"),
+        (lambda: so3.quat_multiply(_Q1, _Q3), r"quat_multiply: q must have shape \(\.\.\., 4\), got \(3,\)"),
+        (lambda: so3.quat_conjugate(np.zeros(5)), r"quat_conjugate: q must have shape \(\.\.\., 4\)"),
+        (lambda: so3.quat_canonical(_Q3), r"quat_canonical: q must have shape \(\.\.\., 4\)"),
+        (lambda: so3.matrix_to_quat(_M23), r"matrix_to_quat: r must have shape \(\.\.\., 3, 3\), got \(2, 3\)"),
+        (lambda: so3.log(_M23), r"log: r must have shape \(\.\.\., 3, 3\), got \(2, 3\)"),
+        (lambda: so3.exp(_V4), r"exp: phi must have shape \(\.\.\., 3\), got \(4,\)"),
+        (lambda: so3.skew(_V4), r"skew: x must have shape \(\.\.\., 3\), got \(4,\)"),
+        (lambda: so3.vex(_M23), r"vex: m must have shape \(\.\.\., 3, 3\)"),
+        (lambda: so3.cross(_V4, _V4), r"cross: a must have shape \(\.\.\., 3\), got \(4,\)"),
+        (lambda: so3.mm(_EYE, _M23), r"mm: a \(\.\.\., n, k\) and b \(\.\.\., k, m\) must agree in k"),
+        (lambda: so3.mv(_EYE, _V4), r"mv: a \(\.\.\., n, k\) and v \(\.\.\., k\) must agree in k"),
+        (lambda: so3.mv(_EYE, 1.0), r"mv: v must have shape \(\.\.\., n\), got \(\)"),
+        (lambda: so3.nearest_rotation(_M23), r"nearest_rotation: m must have shape \(\.\.\., 3, 3\)"),
+        (lambda: so3.polar_newton(_M23), r"polar_newton: m must have shape \(\.\.\., 3, 3\)"),
+        (lambda: so3.det3(_M23), r"det3: r must have shape \(\.\.\., 3, 3\)"),
+        (lambda: so3.cofactor(_M23), r"cofactor: m must have shape \(\.\.\., 3, 3\)"),
+        (lambda: so3.orthogonality_error(_M23), r"orthogonality_error: r must have shape"),
+        (lambda: so3.angle_of(_M23), r"angle_of: e must have shape"),
+        (lambda: so3.angle_error(_EYE, _M23), r"angle_error: r_est must have shape"),
+        (lambda: so3.matrix_to_euler_zyx(_M23), r"matrix_to_euler_zyx: r must have shape"),
+        (lambda: so3.euler_error_zyx(_M23, _EYE), r"euler_error_zyx: r_true must have shape"),
+        (lambda: so3.triad(_V4, _Q3), r"triad: acc must have shape \(\.\.\., 3\), got \(4,\)"),
+        (lambda: so3.triad(_Q3, _Q3, frame="XYZ"), r"frame must be one of ENU, NED, NWU, got 'XYZ'"),
+        (lambda: so3.unit(1.0), r"unit: v must have shape \(\.\.\., n\), got \(\)"),
+        (lambda: so3.quat_multiply_parts((1.0, 0.0, 0.0), tuple(_Q1)), r"quat_multiply_parts: p must be 4 arrays"),
+    ],
+)
+def test_wrong_shapes_are_refused_in_one_line(call, match):
+    """A quaternion of length 3, a (2, 3) matrix, a 4-vector for a 3-vector: refused naming the argument (they
+    gave a shape error deep in jax, or a silently wrong broadcast result: mv of a 3x3 and a length-1 vector)."""
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_shape_checks_under_jit_and_vmap_and_batches():
+    """The checks read static shapes: they pass batched and traced inputs and refuse inside jit / vmap too."""
+    q = jnp.asarray(np.tile(_Q1, (2, 5, 1)))
+    assert jax.jit(so3.quat_to_matrix)(q).shape == (2, 5, 3, 3)
+    assert jax.vmap(jax.vmap(so3.quat_to_matrix))(q).shape == (2, 5, 3, 3)
+    assert jax.jit(jax.vmap(so3.log))(jnp.tile(jnp.eye(3), (4, 1, 1))).shape == (4, 3)
+    assert so3.quat_multiply_parts(jnp.asarray(_Q1), tuple(_Q1))[0] == 1.0  # a (4,) array is 4 rows
+    with pytest.raises(ValueError, match=r"exp: phi must have shape \(\.\.\., 3\), got \(4,\)"):
+        jax.jit(so3.exp)(jnp.zeros(4))
+    with pytest.raises(ValueError, match=r"quat_to_matrix: q must have shape \(\.\.\., 4\), got \(3,\)"):
+        jax.vmap(so3.quat_to_matrix)(jnp.zeros((7, 3)))
+
+
+def test_integer_inputs_are_promoted_to_float():
+    """exp and angle_of of integer arrays failed deep in jnp.finfo ("not inexact"); they take the default float."""
+    r = so3.exp(jnp.array([0, 0, 1]))
+    assert jnp.issubdtype(r.dtype, jnp.floating)
+    np.testing.assert_allclose(np.asarray(r), np.asarray(so3.exp(jnp.array([0.0, 0.0, 1.0]))), atol=1e-15)
+    assert float(so3.angle_of(jnp.eye(3, dtype=int))) == 0.0
+    assert float(so3.angle_error(jnp.eye(3, dtype=int), jnp.diag(jnp.array([1, -1, -1])))) == pytest.approx(PI)

@@ -6,7 +6,9 @@ parameters); all vectors in the sensor (body) frame. Optional ``quat_true``: gro
 quaternion (w, x, y, z), sensor-to-reference (e.g. ENU), NaN where unknown.
 
 A missing reading is NaN (an empty CSV field reads as NaN); every observer documents what it does with one.
-Time must be finite and strictly increasing.
+Time must be finite and strictly increasing. Timestamps may also be dates and times: numpy ``datetime64`` (NPZ,
+arrays) or ISO 8601 text such as ``2024-05-01 12:00:00.001`` (CSV; pandas writes them so) become seconds since the
+first sample, and ``timedelta64`` durations become seconds, each from its own unit (ms, us, ns, ...).
 
 CSV: one header line naming the columns (order free, extra columns ignored), comma-separated:
 ``t, gyr_x, gyr_y, gyr_z`` required; ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of
@@ -74,16 +76,23 @@ CSV_COLUMNS = {
 def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tuple[ImuSample, Optional[np.ndarray]]:
     """Validate a log and return it as float64 numpy arrays.
 
-    Raises ValueError if: ``t`` is not (N,) with N >= 1, not finite or not strictly increasing; ``gyr`` is not
-    (N, 3); ``acc`` / ``mag`` (when present) are not (N, 3); ``quat_true`` (when present) is not (N, 4).
-    NaN in gyr / acc / mag / quat_true is allowed (a missing reading); +-inf is not.
+    ``t`` may be ``datetime64`` (seconds since the first sample) or ``timedelta64`` (seconds), converted with
+    their own unit. Raises ValueError if: ``t`` is not (N,) with N >= 1, not finite or not strictly increasing;
+    ``gyr`` is not (N, 3); ``acc`` / ``mag`` (when present) are not (N, 3); ``quat_true`` (when present) is not
+    (N, 4); a field is not real numbers (text, objects, bools, complex). NaN in gyr / acc / mag / quat_true is
+    allowed (a missing reading); +-inf is not.
     """
 
     def arr(name, v, shape_tail):
         if np.iscomplexobj(v):
             raise ValueError(f"{source}: {name} is complex, expected real numbers")
         try:
-            a = np.asarray(v, dtype=np.float64)
+            a = np.asarray(v)
+            if name == "t" and a.dtype.kind in "Mm":
+                a = _seconds(a)
+            elif a.dtype.kind in "bOSUMm":  # bool, objects, text, dates and durations other than t
+                raise ValueError(f"dtype {a.dtype}, expected real numbers")
+            a = np.asarray(a, dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{source}: {name} is not numeric: {e}") from None
         if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
@@ -130,6 +139,18 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
                 "(w, x, y, z)"
             )
     return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
+
+
+def _seconds(t: np.ndarray) -> np.ndarray:
+    """datetime64 timestamps as float64 seconds since the first (NaT -> NaN), timedelta64 as seconds; each from its
+    own unit. ValueError for units of no fixed length (months, years)."""
+    if t.size == 0:
+        return np.zeros(t.shape)
+    dtype = t.dtype
+    try:
+        return (t - t.reshape(-1)[0] if dtype.kind == "M" else t) / np.timedelta64(1, "s")
+    except TypeError:
+        raise ValueError(f"{dtype} has no fixed length in seconds (use a unit of D or finer)") from None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -179,9 +200,41 @@ def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
     for k, r in enumerate(rows):
         if len(r) < need or any(c.strip() for c in r[len(header) :]):  # short, or values beyond the header
             raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
-        for j, i in enumerate(columns):
-            table[k, j] = _parse_float(r[i], k + 2, header[i], src)
+    for j, i in enumerate(columns):
+        cells = [r[i].strip() for r in rows]
+        if header[i] == "t" and _datetime_column(cells):
+            table[:, j] = _datetime_seconds(cells, src)
+            continue
+        for k, c in enumerate(cells):
+            table[k, j] = _parse_float(c, k + 2, header[i], src)
     return table
+
+
+def _datetime_column(cells: list) -> bool:
+    """Whether a column's first non-empty cell is an ISO 8601 date-time (and not a number)."""
+    first = next((c for c in cells if c), "")
+    if not first or _is_number(first) or first.lower() == "nat":
+        return False
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy: "no explicit representation of timezones"
+            np.datetime64(first)
+    except ValueError:
+        return False
+    return True
+
+
+def _datetime_seconds(cells: list, src: str) -> np.ndarray:
+    """A CSV time column of ISO 8601 date-times as seconds since the first row (empty -> NaN: refused later)."""
+    out = np.empty(len(cells), dtype="datetime64[ns]")
+    for k, c in enumerate(cells):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # an offset such as +02:00 is applied (times in UTC)
+                out[k] = np.datetime64(c, "ns") if c else np.datetime64("NaT")
+        except ValueError:
+            raise ValueError(f"{src}: line {k + 2}: column 't': {c!r} is not a date-time like the first row") from None
+    return _seconds(out)
 
 
 def load_csv(path, *, with_truth: bool = False):
