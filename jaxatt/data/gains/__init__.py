@@ -8,6 +8,8 @@
   studies (``jaxatt evaluate --experiment E --gains FILE`` reads them).
 * ``batista-ges-gradient.json``: batista-ges tuned by gradients alone on the variance-free loss (no runs; Adam then
   L-BFGS from the paper's gains; research/varfree_tune.py).
+* ``nlio-case1-gradient.json``: the NLIO-FG gains of nlio-case1 tuned by gradients alone on the variance-free loss
+  (L-BFGS from the paper's gains, no runs; research/nlio_varfree.py compares it held out).
 
 Derived from the BROAD dataset (D. Laidig, M. Caruso, A. Cereatti, T. Seel, "BROAD - A Benchmark for Robust
 Inertial Orientation Estimation", Data 6(7), 2021, doi:10.3390/data6070072, CC BY 4.0).
