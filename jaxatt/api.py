@@ -143,9 +143,19 @@ def _times(t, dt, n: int):
         raise ValueError("dt (the sample period, s) or t (timestamps, s) is required")
     if t is not None:
         try:
+            t = np.asarray(t)
+            if t.dtype.kind in "mM":  # datetime64 / timedelta64: seconds from their own unit
+                from .data.logs import timestamp_seconds
+
+                t = timestamp_seconds(t)
+            elif t.dtype.kind not in "iuf":
+                raise TypeError
             t = np.asarray(t, np.float64)
         except (TypeError, ValueError):
-            raise ValueError("t must be an array of timestamps in seconds (numbers)") from None
+            raise ValueError(
+                "t must be an array of timestamps in seconds (numbers) or numpy datetime64 / timedelta64, got "
+                f"{getattr(t, 'dtype', type(t).__name__)}"
+            ) from None
         if t.shape != (n,):
             raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
         d = np.diff(t)

@@ -264,8 +264,11 @@ def _parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("tune", help="tune a study's gains by gradient descent through the Monte Carlo scan")
     tp.add_argument("--experiment", required=True, choices=TUNABLE_STUDIES)
     tp.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=100, help="optimiser steps")
-    tp.add_argument("--train-runs", type=_count(1, MAX_RUNS), default=32, help="training seeds")
-    tp.add_argument("--val-runs", type=_count(0, MAX_RUNS), default=16, help="validation seeds (early stopping)")
+    # default None: given or not is told apart (--objective varfree draws no runs and refuses them)
+    tp.add_argument("--train-runs", type=_count(1, MAX_RUNS), default=None, help="training seeds (default 32)")
+    tp.add_argument(
+        "--val-runs", type=_count(0, MAX_RUNS), default=None, help="validation seeds (early stopping; default 16)"
+    )
     tp.add_argument("--duration", type=_positive, default=None, help="simulated time per run, s")
     tp.add_argument("--seed", type=_seed, default=0)
     tp.add_argument("--lr", type=_positive, default=None, help="step size (default 0.05 for adam, 1 for lbfgs)")
@@ -581,6 +584,16 @@ def _tune(args) -> int:
 
     if args.optimizer == "lbfgs" and args.objective != "varfree":
         raise UserError("--optimizer lbfgs needs the same loss at every step: use it with --objective varfree")
+    if args.objective == "varfree":
+        given = [
+            flag for flag, v in (("--train-runs", args.train_runs), ("--val-runs", args.val_runs)) if v is not None
+        ]
+        if given:
+            two = len(given) > 1
+            raise UserError(
+                f"{' and '.join(given)} {'do' if two else 'does'} not apply to --objective varfree (the variance-free "
+                f"loss draws no runs; leave {'them' if two else 'it'} out, or use --objective montecarlo)"
+            )
     io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES)
     config = {"duration": args.duration} if args.duration is not None else None
     from .progress import Heartbeat
@@ -591,8 +604,8 @@ def _tune(args) -> int:
             None,
             args.experiment,
             steps=args.steps,
-            train_runs=args.train_runs,
-            val_runs=args.val_runs,
+            train_runs=fitter.TRAIN_RUNS if args.train_runs is None else args.train_runs,
+            val_runs=fitter.VAL_RUNS if args.val_runs is None else args.val_runs,
             out=args.out,
             seed=args.seed,
             lr=args.lr,

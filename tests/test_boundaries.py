@@ -108,6 +108,7 @@ def make_files(d: Path) -> None:
         (d / f"trials_{name}" / "trials.json").write_text(json.dumps(info))
     (d / "empty_runs.json.runs.npz").write_bytes(b"")
     (d / "runs_folder.json.runs.npz").mkdir()
+    (d / "partial_folder.json.partial.json").mkdir()
 
 
 def _run(argv, files, capsys):
@@ -265,6 +266,10 @@ BAD_INPUT = [
     (["reproduce", "batista-so3", *MC, "--json", "{d}/empty_runs.json", "--resume"], r"not a runs file of jaxatt"),
     (["reproduce", "batista-so3", *MC, "--json", "{d}/runs_folder.json"], r"runs file saved beside it.*is a folder"),
     (["reproduce", "batista-so3", *MC, "--json", "/dev/null", "--resume"], r"--resume needs --json of a file"),
+    (
+        ["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/partial_folder.json"],
+        r"out .*partial_folder\.json\.partial\.json: is a folder",
+    ),
 ]
 
 

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 
+import jaxatt
 from jaxatt import cli
 
 PROVENANCE_KEYS = {
@@ -489,3 +490,32 @@ def test_a_tune_that_ends_on_non_finite_steps_exits_1(tmp_path, capsys):
     assert d["status"] == "non-finite" and all(
         np.isfinite(np.asarray(v["value"], float)).all() for v in d["gains"].values()
     )
+
+
+def test_tune_resume_refuses_another_set_up(tmp_path, capsys):
+    """--resume continues the saved fit only with its set-up: the same flags resume; another --val-runs,
+    --duration or --refine-schedule is refused naming the setting (the fit would mix two problems)."""
+    out = tmp_path / "g.json"
+    argv = ["tune", "--experiment", "complementary", "--train-runs", "1", "--val-runs", "0", "--duration", "1"]
+    assert cli.main([*argv, "--steps", "1", "--out", str(out), "--quiet"]) == 0
+    assert cli.main([*argv, "--steps", "2", "--out", str(out), "--quiet", "--resume"]) == 0
+    assert len(json.loads(out.read_text())["history"]) == 2
+    capsys.readouterr()
+    other = [*argv[:5], "--val-runs", "1", "--duration", "1"]
+    assert cli.main([*other, "--steps", "3", "--out", str(out), "--quiet", "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "setting 'val_runs' differs" in err[0], err
+    # the API's config: the same duration, another scenario setting
+    with pytest.raises(ValueError, match="setting 'config' differs"):
+        jaxatt.fit(
+            None,
+            None,
+            "complementary",
+            steps=3,
+            out=str(out),
+            resume=True,
+            train_runs=1,
+            val_runs=0,
+            quiet=True,
+            config={"duration": 1.0, "gyro_noise_std": 0.01},
+        )

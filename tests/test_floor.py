@@ -264,3 +264,41 @@ def test_mekf_reaches_the_floor():
     for w in ("a", "b"):
         noise_part = pr[w]["mean_sq_deg2"] - pr[w]["bias_rms_deg"] ** 2
         np.testing.assert_allclose(noise_part, fl[w]["mean_sq_deg2"], rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"duration": math.nan}, "duration must be a finite positive"),
+        ({"duration": math.inf}, "duration must be a finite positive"),
+        ({"duration": -1.0}, "duration must be a finite positive"),
+        ({"dt": math.nan}, "dt must be a finite positive"),
+        ({"dt": "0.1"}, "dt must be a number of seconds"),
+        ({"duration": 1e12, "dt": 1e-3}, r"at most 2147483647 steps per run"),
+        ({"every": -1}, "every must be >= 0"),
+        ({"every": 1.5}, "every must be a whole number"),
+        ({"prior": (1.0, "a")}, r"prior must be a Prior\(attitude_rad, bias_rad_s\)"),
+        ({"prior": 0.1}, r"prior must be a Prior\(attitude_rad, bias_rad_s\)"),
+        ({"bias": "no"}, "bias must be True, False or None"),
+        ({"smoother": "yes"}, "smoother must be True or False"),
+    ],
+)
+def test_floor_refuses_bad_times_every_and_options(change, match):
+    """floor: NaN / inf / negative times, more steps than the engine counts (types.MAX_STEPS), a negative or
+    fractional ``every`` and options of the wrong kind are one clear line, before anything runs."""
+    s = studies.get("batista-ges").setup(duration=1.0)
+    with pytest.raises(ValueError, match=match) as e:
+        F.floor(s.scenario, **{"duration": 1.0, "dt": 0.1, **change})
+    assert "\n" not in str(e.value)
+
+
+def test_floor_study_refuses_bad_every_and_settings():
+    for kw, match in (
+        ({"every": -1}, "every must be >= 0"),
+        ({"every": 0.5}, "every must be a whole number"),
+        ({"duration": "x"}, "batista-ges setting 'duration' must be a finite number"),
+        ({"gyro_bias": [1, 2]}, "batista-ges setting 'gyro_bias' must be a list of 3 finite numbers"),
+    ):
+        with pytest.raises(ValueError, match=match) as e:
+            F.floor_study("batista-ges", **{"duration": 1.0, **kw})
+        assert "\n" not in str(e.value)

@@ -391,6 +391,22 @@ def test_float32_data_with_epoch_timestamps_keeps_its_times():
     np.testing.assert_array_equal(est.outputs["t"], t)
 
 
+def test_datetime64_timestamps_are_read_in_their_own_unit():
+    """numpy datetime64 / timedelta64 stamps (1 ms apart, as a pandas column gives them) are seconds from their own
+    unit: the same estimates as the float seconds 0, 0.001, ... (read as plain numbers, 1 ms would be 1 s)."""
+    n = 200
+    rng = np.random.default_rng(5)
+    g = rng.normal(size=(n, 3)) * 0.3
+    a, m = np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile([20.0, 0.0, -40.0], (n, 1))
+    ref = jaxatt.filter("madgwick", g, a, m, t=0.001 * np.arange(n))
+    stamps = np.datetime64("2026-12-04T05:00:00.000") + np.arange(n) * np.timedelta64(1, "ms")
+    for t in (stamps, np.arange(n) * np.timedelta64(1, "ms")):
+        est = jaxatt.filter("madgwick", g, a, m, t=t)
+        np.testing.assert_allclose(est.quat, ref.quat, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="t must be an array of timestamps"):
+        jaxatt.filter("madgwick", g, a, m, t=np.ones(n, bool))
+
+
 def test_weakly_typed_gains_reuse_the_compiled_filter():
     """Gains given as Python floats or weakly typed arrays (``jnp.asarray(0.1)``) run the program compiled for the
     same gains typed (no new entry in the compiled scan's cache), with the same estimates."""
@@ -583,3 +599,73 @@ def _short_log():
     scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-4, acc_noise_std=0.01, mag_noise_std=0.05, gyro_bias=(0, 0, 0))
     samples, truth = montecarlo.simulate_log(scn, duration=2.0, dt=0.01)
     return samples, truth
+
+
+#: a short batista-ges set-up for study fits that stop at their arguments
+_SHORT = {"duration": 1.0}
+
+
+@pytest.mark.parametrize(
+    "study, config, match",
+    [
+        ("batista-ges", {"duration": "abc"}, "batista-ges setting 'duration' must be a finite number, got 'abc'"),
+        ("batista-ges", {"latitude_deg": [1, 2]}, "setting 'latitude_deg' must be a finite number, got \\[1, 2\\]"),
+        ("batista-ges", {"reference_nT": 5}, "setting 'reference_nT' must be a list of 3 finite numbers, got 5"),
+        ("batista-ges", {"gyro_bias": "x"}, "setting 'gyro_bias' must be a list of 3 finite numbers, got 'x'"),
+        ("batista-ges", {"r_hat_0": [1, 0, 0]}, "setting 'r_hat_0' must be a list of 9 or 3x3 finite numbers or None"),
+        ("batista-ges", {"nope": 1}, r"unknown batista-ges settings \['nope'\]"),
+        ("batista-ges", [("duration", 1.0)], "config must be a dict of batista-ges settings"),
+        ("batista-ges", {1: 2.0}, "setting names must be strings"),
+        ("batista-so3", {"trajectory": 3}, "batista-so3 setting 'trajectory' must be a string, got 3"),
+        ("complementary", {"gain": True}, "complementary setting 'gain' must be a finite number, got True"),
+        ("nlio-case1", {"observers": "NLO"}, "nlio-case1 setting 'observers' must be a list of strings"),
+        ("nlio-case1", {"random_init": 1}, "nlio-case1 setting 'random_init' must be True or False"),
+        ("nlio-case1", {"duration": [500]}, "nlio-case1 setting 'duration' must be a finite number"),
+        ("nlio-case1", {"windows": [("a", 0, "x")]}, r"setting 'windows' must be a list of \(string, number, number\)"),
+    ],
+)
+def test_a_study_fit_names_the_setting_of_the_wrong_kind(study, config, match):
+    """jaxatt.fit(data=<study>, config={...}): a setting of the wrong kind is one ValueError naming it (checked
+    against the study's Config once, for every study, jaxatt.fit and the command line alike)."""
+    with pytest.raises(ValueError, match=match) as e:
+        jaxatt.fit(data=study, steps=0, config={**_SHORT, **config} if isinstance(config, dict) else config)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"params": 3.0}, r"params of batista-ges \(study batista-ges\) must be its Params \(ref_nav, .*got float"),
+        ({"params": jaxatt.observers.madgwick.Params(0.1)}, r"must be its Params .*got Params"),
+        ({"params": {"nope": 1.0}}, "params: 'nope' is not a field"),
+        ({"params": {"epsilon": "abc"}}, "params: epsilon is not numeric"),
+        ({"dtype": "float16"}, "dtype must be float32 or float64, got 'float16'"),
+        ({"dtype": "int32"}, "dtype must be float32 or float64"),
+        ({"hold": "next"}, "hold must be 'zoh' or 'linear', got 'next'"),
+        ({"hold": "linear", "config": {**_SHORT, "hold": "zoh"}}, r"hold='linear' and config\['hold'\]='zoh' differ"),
+        ({"train_runs": "4"}, "train_runs must be a whole number"),
+        ({"val_runs": -1}, "val_runs must be >= 0"),
+    ],
+)
+def test_a_study_fit_refuses_params_dtype_and_hold_it_cannot_use(kwargs, match):
+    with pytest.raises(ValueError, match=match) as e:
+        jaxatt.fit(data="batista-ges", **{"steps": 0, "config": _SHORT, **kwargs})
+    assert "\n" not in str(e.value)
+
+
+def test_a_study_fit_takes_a_dict_of_gains_and_honours_hold(tmp_path):
+    """params={gain: value} is put into the paper's gains; hold= becomes the study's hold setting (recorded in
+    the gains file's config), not silently dropped."""
+    out = tmp_path / "g.json"
+    res = jaxatt.fit(
+        data="batista-ges",
+        objective="varfree",
+        steps=0,
+        config=_SHORT,
+        params={"epsilon": 0.4},
+        hold="linear",
+        dtype="float64",
+        out=str(out),
+    )
+    assert float(res.start_params.epsilon) == 0.4
+    assert json.loads(out.read_text())["settings"]["config"]["hold"] == "linear"

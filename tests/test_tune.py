@@ -464,3 +464,37 @@ print(json.load(open({str(tmp_path / "r.json")!r}))["config"]["dtype"])
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines()[-1] == "float32"
+
+
+def test_every_study_config_has_settings_of_its_declared_kind():
+    """The check of study settings (jaxatt.studies.base.check_settings) accepts each study's own defaults and
+    returns them unchanged in value (lists as tuples, numbers as floats)."""
+    from jaxatt.studies import base, batista_ges, batista_so3, complementary, nlio
+
+    for mod, name in ((batista_ges, "batista-ges"), (batista_so3, "batista-so3"), (complementary, "complementary")):
+        d = mod.Config()._asdict()
+        assert base.check_settings(mod.Config, d, name) == {k: v for k, v in d.items()}
+    for key, cfg in nlio.CASES.items():
+        d = cfg._asdict()
+        assert base.check_settings(nlio.Config, d, f"nlio-{key}") == d
+    # a 3x3 initial estimate is read as its 9 numbers, row-major
+    s = studies.get("batista-ges").setup(duration=1.0, r_hat_0=np.eye(3))
+    assert s.config.r_hat_0 == (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.parametrize(
+    "flags", [["--train-runs", "32"], ["--val-runs", "4"], ["--train-runs", "2", "--val-runs", "0"]]
+)
+def test_tune_varfree_refuses_run_counts(flags, tmp_path, capsys):
+    """`jaxatt tune --objective varfree` draws no runs: --train-runs / --val-runs given (even at their defaults)
+    are refused with one line and exit status 2, and nothing is written."""
+    from jaxatt import cli
+
+    out = tmp_path / "g.json"
+    argv = ["tune", "--experiment", "batista-ges", "--objective", "varfree", *flags, "--out", str(out), "--quiet"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jaxatt: error: --") and "does not apply to --objective varfree" in err.replace(
+        "do not", "does not"
+    )
+    assert "\n" not in err and not out.exists()

@@ -452,3 +452,58 @@ def test_bad_input():
     # tracking only the time leaves the filtered value untracked: the noise moves it, and the run says so
     with pytest.raises(ValueError, match="an untracked state coordinate moved"):
         V.predict(TOY, scn, p, track=("t",), **kw)
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"duration": math.nan}, "duration must be a finite positive"),
+        ({"duration": math.inf}, "duration must be a finite positive"),
+        ({"duration": -1.0}, "duration must be a finite positive"),
+        ({"duration": "1"}, "duration must be a number of seconds"),
+        ({"dt": math.nan}, "dt must be a finite positive"),
+        ({"dt": -0.1}, "dt must be a finite positive"),
+        ({"duration": 1e12, "dt": 1e-3}, r"at most 2147483647 steps per run"),
+        ({"every": -1}, "every must be >= 0"),
+        ({"every": 0.5}, "every must be a whole number"),
+        ({"leak_tol": "x"}, "leak_tol must be a number >= 0"),
+    ],
+)
+def test_predict_refuses_bad_times_and_every(change, match):
+    """predict: NaN / inf / negative times, more steps than the engine counts (types.MAX_STEPS) and a negative or
+    fractional ``every`` are one clear line, before anything is compiled."""
+    scn = ToyScenario(jnp.asarray(2.0), jnp.asarray(0.3), jnp.eye(3))
+    p = {"a": jnp.asarray(0.8), "offset": jnp.asarray(0.0)}
+    kw = {"duration": 1.0, "dt": 0.1, "kind": _toy_error, **change}
+    with pytest.raises(ValueError, match=match) as e:
+        V.predict(TOY, scn, p, **kw)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"every": -1}, "every must be >= 0"),
+        ({"every": 2.5}, "every must be a whole number"),
+        ({"every": "2"}, "every must be a whole number"),
+        ({"params": 3.0}, r"params of batista-ges \(study batista-ges\) must be its Params"),
+        ({"params": {"nope": 1.0}}, "'nope' is not a field"),
+        ({"duration": "abc"}, "batista-ges setting 'duration' must be a finite number, got 'abc'"),
+    ],
+)
+def test_predict_study_refuses_bad_input(kwargs, match):
+    """predict_study: ``every`` must be a whole number >= 0, ``params`` the observer's Params or a dict of its gains,
+    the study's settings of their declared kind."""
+    with pytest.raises(ValueError, match=match) as e:
+        V.predict_study("batista-ges", **{"duration": 1.0, **kwargs})
+    assert "\n" not in str(e.value)
+
+
+def test_variance_free_fit_refuses_the_options_of_runs():
+    """objective="varfree" draws no runs: train_runs, val_runs and batch would be ignored, so they are refused."""
+    import jaxatt
+
+    for kw, name in (({"train_runs": 4}, "train_runs"), ({"val_runs": 0}, "val_runs"), ({"batch": 4}, "batch")):
+        with pytest.raises(ValueError, match=rf"^{name}: objective='varfree' draws no runs") as e:
+            jaxatt.fit(data="batista-ges", objective="varfree", steps=0, config=SHORT_GES, **kw)
+        assert "\n" not in str(e.value)

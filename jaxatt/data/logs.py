@@ -89,7 +89,7 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
         try:
             a = np.asarray(v)
             if name == "t" and a.dtype.kind in "Mm":
-                a = _seconds(a)
+                a = timestamp_seconds(a)
             elif a.dtype.kind in "bOSUMm":  # bool, objects, text, dates and durations other than t
                 raise ValueError(f"dtype {a.dtype}, expected real numbers")
             a = np.asarray(a, dtype=np.float64)
@@ -141,7 +141,7 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
 
 
-def _seconds(t: np.ndarray) -> np.ndarray:
+def timestamp_seconds(t: np.ndarray) -> np.ndarray:
     """datetime64 timestamps as float64 seconds since the first (NaT -> NaN), timedelta64 as seconds; each from its
     own unit. ValueError for units of no fixed length (months, years)."""
     if t.size == 0:
@@ -234,7 +234,7 @@ def _datetime_seconds(cells: list, src: str) -> np.ndarray:
                 out[k] = np.datetime64(c, "ns") if c else np.datetime64("NaT")
         except ValueError:
             raise ValueError(f"{src}: line {k + 2}: column 't': {c!r} is not a date-time like the first row") from None
-    return _seconds(out)
+    return timestamp_seconds(out)
 
 
 def load_csv(path, *, with_truth: bool = False):

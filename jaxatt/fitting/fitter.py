@@ -39,7 +39,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import engine, io
-from ..types import check_seed
+from ..types import MAX_RUNS, check_seed
 from . import gainsfile
 from . import parametrize as P
 
@@ -569,7 +569,9 @@ def fit(
         observer: a registered name or your own Observer (for a study: None = the study's tuned observer, or the
             registered name of another observer the study compares, its ``fittable``, e.g. "mekf" or "nlio" on
             the nlio studies).
-        params: start gains (None: a registered observer's shipped/default gains, or the study's paper gains).
+        params: start gains (None: a registered observer's shipped/default gains, or the study's paper gains;
+            a registered observer's or a study's also take a dict of gain name -> value put into those, or a
+            gains-file path).
         data: recorded trials (:class:`jaxatt.data.broad.Trial` s; loss = group-weighted mean per-trial total RMSE,
             deg) or a study name (:data:`jaxatt.studies.TUNABLE`; loss = ``loss`` over its windows on simulated
             runs 0 ... train_runs-1 of ``seed``, validation on the next ``val_runs``).
@@ -584,19 +586,22 @@ def fit(
             runs. ``val_every``, ``patience``: validation cadence and early stopping.
         out: gains file rewritten after every step (best gains, start, settings, history, provenance and the
             resume state). ``resume``: continue from it. ``overwrite``: replace a finished one.
-        dtype: arithmetic (default: float64 when x64 is on for studies; for trials the data's).
+        dtype: arithmetic, float32 or float64 (default: float64 when x64 is on for studies; for trials the data's).
+        hold: how a step sees the samples (:data:`jaxatt.types.HOLDS`; default the observer's own); for a study its
+            ``hold`` setting (as ``config["hold"]``: "zoh" or "linear").
         checkpoint, step_remat: memory of the reverse pass (:func:`jaxatt.engine.segment_length`: "auto" stores
             one state per segment of about sqrt(T) steps and recomputes each segment; ``step_remat`` also
             rematerialises each step: least memory, about 3x slower on trials).
-        loss, transient_weight, config, refine_schedule, devices: study options
-            (:mod:`jaxatt.fitting.losses`, :func:`jaxatt.schedule.refine`); ``loss="innovation_nll"`` fits a
+        loss, transient_weight, config, refine_schedule, devices: study options (``config``: a dict of the study's
+            settings, each checked against its Config; :mod:`jaxatt.fitting.losses`,
+            :func:`jaxatt.schedule.refine`); ``loss="innovation_nll"`` fits a
             Kalman filter's noise parameters by maximum likelihood of its innovations (no truth used).
         objective: for a study, ``"montecarlo"`` (the loss averaged over minibatches of simulated runs) or
             ``"varfree"`` (its expectation over the noise, computed without runs by covariance propagation along
             the noise-free run, :mod:`jaxatt.fitting.varfree`: no sampling noise in the loss or its gradient, so
-            no minibatches and no validation runs; kinds ``angle_sq`` / ``euler_sq``; the study's random
-            initial estimates are not drawn; its gradient in forward mode when at most
-            :data:`FORWARD_MODE_MAX` numbers are tuned, else in reverse mode).
+            no minibatches and no validation runs: ``train_runs``, ``val_runs`` and ``batch`` are refused; kinds
+            ``angle_sq`` / ``euler_sq``; the study's random initial estimates are not drawn; its gradient in
+            forward mode when at most :data:`FORWARD_MODE_MAX` numbers are tuned, else in reverse mode).
         optimizer: ``"adam"`` (default) or ``"lbfgs"`` (quasi-Newton with a line search, for a loss that is the
             same at every step: ``objective="varfree"``, or trials with ``batch`` = all of them; ``lr`` caps its
             step on the tuned numbers; see :func:`optimize`).
@@ -627,10 +632,16 @@ def fit(
         )
     if isinstance(val_every, bool) or not isinstance(val_every, (int, np.integer)) or val_every < 1:
         raise ValueError(f"val_every must be a whole number of steps >= 1, got {val_every!r}")
+    if dtype is not None:  # float32 or float64 only (and float64 only with x64 on)
+        from ..api import compute_dtype
+
+        dtype = compute_dtype(dtype=dtype)
     final_path = io.check_output_path(out, "out", suffixes=io.JSON_SUFFIXES)
     out_path, previous = final_path, None
     if final_path is not None:
         partial = partial_path(final_path)
+        if not io.is_special(final_path):  # /dev/null: nothing is saved beside it
+            io.check_output_path(partial, "out (its unfinished fit is saved beside it)")
         if resume and partial.exists():  # an overwriting fit was interrupted: continue it
             out_path, previous = partial, gainsfile.read(partial)
         elif final_path.exists():
@@ -769,7 +780,7 @@ def _fit(
             method=method,
             transforms=transforms,
             start=start,
-            batch=8 if batch is None else batch,
+            batch=batch,
             val_every=val_every,
             patience=patience,
             clip=clip,
@@ -780,6 +791,7 @@ def _fit(
             callback=callback,
             quiet=quiet,
             dtype=dtype,
+            hold=hold,
             loss=loss,
             transient_weight=transient_weight,
             config=config,
@@ -917,22 +929,46 @@ def _fit_study(
     devices,
     objective="montecarlo",
     optimizer="adam",
+    hold=None,
 ):
     from .. import montecarlo, studies
     from .. import schedule as sched
     from ..observers import registry
+    from ..studies.base import setup_params
     from . import losses
 
     st = studies.get(study)
     if st.name not in studies.TUNABLE:
         raise ValueError(f"study {st.name!r} cannot be tuned; tunable: {', '.join(studies.TUNABLE)}")
-    if train_runs < 1 or val_runs < 0:
-        raise ValueError(f"need train_runs >= 1 and val_runs >= 0, got {train_runs}, {val_runs}")
-    s = st.setup(observer if isinstance(observer, str) else None, **dict(config or {}))
+    train_runs = montecarlo.check_count("train_runs", train_runs, 1, MAX_RUNS)
+    val_runs = montecarlo.check_count("val_runs", val_runs, 0, MAX_RUNS)
+    if objective == "varfree":  # the variance-free loss draws no runs: options of the runs would be ignored
+        given = [
+            k
+            for k, v in (("train_runs", train_runs != TRAIN_RUNS), ("val_runs", val_runs != VAL_RUNS))
+            + (("batch", batch is not None),)
+            if v
+        ]
+        if given:
+            raise ValueError(
+                f"{', '.join(given)}: objective='varfree' draws no runs (leave {'them' if len(given) > 1 else 'it'} "
+                "out, or use objective='montecarlo')"
+            )
+    batch = 8 if batch is None else batch
+    if config is not None and not isinstance(config, Mapping):
+        raise ValueError(f"config must be a dict of {st.name} settings (name -> value), got {type(config).__name__}")
+    if config is not None and not all(isinstance(k, str) for k in config):
+        raise ValueError(f"config: {st.name} setting names must be strings, got {sorted(map(repr, config))}")
+    config = dict(config or {})
+    if hold is not None:  # the study's own setting (its samples' hold): honoured through its config
+        if "hold" in config and config["hold"] != hold:
+            raise ValueError(f"hold={hold!r} and config['hold']={config['hold']!r} differ: give the hold once")
+        config["hold"] = hold
+    s = st.setup(observer if isinstance(observer, str) else None, **config)
     if observer is not None and not isinstance(observer, str) and observer is not s.observer:
         raise ValueError(f"study {st.name}: pass the observer by its registered name ({s.entry!r}) or None")
     entry = registry.get(s.entry)
-    p0 = _start(s.params if params is None else params, start, entry)
+    p0 = _start(setup_params(s, params), start, entry)
     if len(refine_schedule):
         fields = [g.field for g in entry.gains if g.constraint == "schedule"]
         if not fields:
@@ -988,6 +1024,8 @@ def _fit_study(
             "note": "variance-free loss (jaxatt.fitting.varfree): expectation over the noise, no runs drawn",
             "optimizer": optimizer,
         }
+        if len(refine_schedule):
+            settings["refine_schedule"] = [float(x) for x in refine_schedule]
         if not quiet:
             print(
                 f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; variance-free loss "
@@ -1054,6 +1092,8 @@ def _fit_study(
         "n_tunable": bound.n_free(),
         "optimizer": optimizer,
     }
+    if len(refine_schedule):
+        settings["refine_schedule"] = [float(x) for x in refine_schedule]
     if not quiet:
         print(
             f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; {train_runs} training "
@@ -1151,6 +1191,11 @@ def _run(
             "n_tunable",
             "schedule",
             "objective",
+            "config",
+            "val_runs",
+            "refine_schedule",
+            "tunable",
+            "masks",
         ] + (["steps"] if settings.get("schedule") == "cosine" else [])
         old = {"optimizer": "adam", **old}  # files written before the choice existed: Adam
         for k in keys + ["optimizer"]:

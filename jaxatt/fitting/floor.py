@@ -69,6 +69,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import engine, so3
+from ..montecarlo import check_count, check_dt, check_duration
+from ..types import check_step_count
 from .varfree import _windows, expected_norm
 
 __all__ = ["Prior", "Model", "floor", "floor_study", "heading_floor_closed_form"]
@@ -223,24 +225,29 @@ def floor(
     measurement components), ``prior``, ``hold``, ``dt``, ``n_steps``. ValueError (one line) on bad input."""
     if not jax.config.values["jax_enable_x64"]:
         raise ValueError("the floor needs float64: call jax.config.update('jax_enable_x64', True) first")
-    dt = float(dt)
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
-    n_steps = int(round(float(duration) / dt))
-    if not (math.isfinite(float(duration)) and n_steps >= 1):
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    dt, duration = check_dt(dt), check_duration(duration)
+    n_steps = check_step_count(duration, dt)
+    every = check_count("every", every)
+    if bias is not None and not isinstance(bias, (bool, np.bool_)):
+        raise ValueError(f"bias must be True, False or None (the scenario decides), got {bias!r}")
+    if not isinstance(smoother, (bool, np.bool_)):
+        raise ValueError(f"smoother must be True or False, got {smoother!r}")
     engine.check_hold(hold)
     wins = _windows(windows)
     last = max(w[2] for w in wins)
     if math.isfinite(last):
         n_steps = max(1, min(n_steps, math.ceil(last / dt - 1e-9)))
     prior = Prior() if prior is None else prior
-    pa, pb = float(prior.attitude_rad), float(prior.bias_rad_s)
+    try:
+        if not isinstance(prior, tuple) or len(prior) != 2 or any(isinstance(x, (bool, str)) for x in prior):
+            raise TypeError
+        pa, pb = float(prior[0]), float(prior[1])
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"prior must be a Prior(attitude_rad, bias_rad_s) of two numbers or None, got {prior!r}"
+        ) from None
     if not (math.isfinite(pa) and math.isfinite(pb) and pa >= 0 and pb >= 0):
         raise ValueError(f"prior standard deviations must be finite and >= 0, got {prior}")
-    every = int(every)
-    if every < 0:
-        raise ValueError(f"every must be >= 0, got {every}")
     scn = engine.cast_floats(scenario, jnp.float64)
     mdl = _model(scn, dt, bias)
     for name, start, _ in wins:

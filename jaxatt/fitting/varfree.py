@@ -70,7 +70,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import engine, so3
-from ..types import Interval, Observer
+from ..montecarlo import check_count, check_dt, check_duration
+from ..types import Interval, Observer, check_step_count
 
 __all__ = [
     "Linearised",
@@ -677,12 +678,9 @@ def make_predict_fn(
     ``mean_norm=False``: skip E|e| (``mean_deg`` NaN). ``initial``: a random initial estimate
     (:class:`InitialNoise`; default none: the params' own).
     """
-    dt = float(dt)
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
-    n_steps = int(round(float(duration) / dt))
-    if n_steps < 1:
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    dt, duration = check_dt(dt), check_duration(duration)
+    n_steps = check_step_count(duration, dt)
+    every = check_count("every", every)
     engine.check_hold(hold)
     _check_kind(kind)
     wins = _windows(windows)
@@ -697,7 +695,6 @@ def make_predict_fn(
     )
     lin = linearised_observer(observer, hold, active, int(scenario.n_channels), initial)
     segment = engine.segment_length(n_steps, checkpoint)
-    every = int(every)
     if every and segment and segment % every:
         raise ValueError(f"every ({every}) must divide the checkpoint segment ({segment} steps)")
     fn = engine.compiled(
@@ -759,6 +756,12 @@ def predict(
     ``tracked`` (coordinate names) and, with ``every``, ``records`` (numpy arrays). ValueError when an untracked
     coordinate moved by more than ``leak_tol`` (pass ``track="all"``). ``initial``: a random initial estimate
     (:class:`InitialNoise`). See :func:`make_predict_fn`."""
+    if (
+        isinstance(leak_tol, bool)
+        or not isinstance(leak_tol, (int, float, np.integer, np.floating))
+        or not leak_tol >= 0
+    ):
+        raise ValueError(f"leak_tol must be a number >= 0, got {leak_tol!r}")
     fn = make_predict_fn(
         observer,
         scenario,
@@ -785,15 +788,15 @@ def predict(
 
 def predict_study(study, params=None, *, windows=None, kind=None, errors: bool = True, every: int = 0, **config):
     """:func:`predict` on a study's set-up (:meth:`jaxatt.studies.base.Study.setup` with ``config``): its tuned
-    observer, scenario, hold, duration and step, with ``params`` (default: the paper's gains), its loss windows
+    observer, scenario, hold, duration and step, with ``params`` (default: the paper's gains; a dict of gain name ->
+    value put into them, a gains-file path, or the observer's Params), its loss windows
     (default: "steady" [window_start, end) and "transient" [0, window_start)), its loss kind (if it is one of
     :data:`ERROR_VECTORS`, else ``"angle_sq"``) and its named errors."""
     from .. import studies
 
     st = studies.get(study)
     s = st.setup(**config)
-    p = s.params if params is None else params
-    s.check_params(p) if s.check_params is not None else None
+    p = studies.base.setup_params(s, params)
     if windows is None:
         windows = tuple((n, a, b) for n, (a, b) in s.loss_windows.items())
     if kind is None:

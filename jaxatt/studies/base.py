@@ -18,10 +18,14 @@ study may add its own keys (the NLIO tables: ``observers.<label>.mae`` / ``.rmse
 from __future__ import annotations
 
 import abc
+import collections.abc
+import functools
 import math
+import numbers
 import time
+import typing
 import zipfile
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import jax
 import numpy as np
@@ -29,7 +33,7 @@ import numpy as np
 from .. import io
 from ..progress import done_reporting, report_line
 
-__all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict"]
+__all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict", "check_settings", "setup_params"]
 
 
 def paper_dtype():
@@ -56,6 +60,148 @@ def config_dict(cfg) -> dict:
         return {}
     d = cfg._asdict() if hasattr(cfg, "_asdict") else dict(cfg)
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+
+class _Bad(Exception):
+    """A setting's value does not fit its declared type (internal to :func:`check_settings`)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(config_type) -> Dict[str, Any]:
+    return typing.get_type_hints(config_type)
+
+
+def _describe(hint, shapes) -> str:
+    """What a setting of type ``hint`` must be, in words (``shapes``: the allowed shapes of a list of numbers)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Union:
+        inner = [a for a in args if a is not type(None)]
+        return f"{_describe(inner[0], shapes)} or None"
+    if hint is float:
+        return "a finite number"
+    if hint is int:
+        return "a whole number"
+    if hint is bool:
+        return "True or False"
+    if hint is str:
+        return "a string"
+    if origin in (tuple, list, collections.abc.Sequence) or hint in (tuple, list):
+        if args and (len(args) == 1 or args[-1] is Ellipsis):
+            if args[0] is float:
+                n = " or ".join("x".join(map(str, sh)) for sh in shapes) if shapes else ""
+                return f"a list of {n + ' ' if n else ''}finite numbers"
+            if args[0] is str:
+                return "a list of strings"
+            return f"a list of {_describe(args[0], None)}"
+        if args:
+            if all(a is float for a in args):
+                return f"a list of {len(args)} finite numbers"
+            return "(" + ", ".join(_describe(a, None).replace("a finite ", "").replace("a ", "") for a in args) + ")"
+        return "a list"
+    return f"a {getattr(hint, '__name__', hint)}"
+
+
+def _conform(v, hint, shapes):
+    """``v`` as a value of the setting type ``hint`` (lists as tuples, numbers as float): raises :class:`_Bad`."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Union:
+        if v is None:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _conform(v, inner[0], shapes)
+    if hint is float or hint is int:
+        if isinstance(v, (np.ndarray, jax.Array)) and np.ndim(v) == 0:  # a 0-d array: its number
+            v = np.asarray(v).item()
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+            raise _Bad
+        if hint is int:
+            if not float(v).is_integer():
+                raise _Bad
+            return int(v)
+        return float(v)
+    if hint is bool:
+        if not isinstance(v, (bool, np.bool_)):
+            raise _Bad
+        return bool(v)
+    if hint is str:
+        if not isinstance(v, str):
+            raise _Bad
+        return v
+    if origin in (tuple, list, collections.abc.Sequence) or hint in (tuple, list):
+        if isinstance(v, (str, bytes, Mapping)) or not isinstance(v, (list, tuple, np.ndarray, jax.Array)):
+            raise _Bad
+        if args and (len(args) == 1 or args[-1] is Ellipsis):
+            if args[0] is float:  # numbers: a list (or array) of one of the allowed shapes
+                try:
+                    a = np.asarray(v)
+                except (TypeError, ValueError):
+                    raise _Bad from None
+                if a.dtype == bool or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+                    raise _Bad
+                if (shapes and a.shape not in shapes) or (not shapes and a.ndim != 1) or not np.all(np.isfinite(a)):
+                    raise _Bad
+                return tuple(float(x) for x in a.ravel())
+            return tuple(_conform(x, args[0], None) for x in v)
+        if args:
+            if len(v) != len(args):
+                raise _Bad
+            return tuple(_conform(x, a, None) for x, a in zip(v, args))
+        return tuple(v)
+    return v
+
+
+def check_settings(config_type, overrides: Mapping[str, Any], study: str, shapes=None) -> Dict[str, Any]:
+    """``overrides`` of a study's Config (a NamedTuple class) checked against the Config's declared field types,
+    once for every study and every caller (``jaxatt.fit(config=...)``, the command line, :meth:`Study.setup`):
+    ValueError (one line, naming the setting) for an unknown setting or a value of the wrong kind; otherwise the
+    overrides with lists as tuples and numbers as Python floats. Numbers must be finite. A list of numbers must
+    have the length of the field's default, or one of ``shapes[field]`` (tuples of array shapes) when given (the
+    default is None). What values are allowed beyond their type (ranges, names) each study checks itself."""
+    if not isinstance(overrides, Mapping):
+        raise ValueError(f"{study} settings must be a dict of setting name -> value, got {type(overrides).__name__}")
+    fields = config_type._fields
+    bad = sorted(map(str, set(overrides) - set(fields)))
+    if bad:
+        raise ValueError(f"unknown {study} settings {bad} (settings: {', '.join(fields)})")
+    hints = _hints(config_type)
+    out = {}
+    for k, v in overrides.items():
+        default = config_type._field_defaults.get(k)
+        allowed = (shapes or {}).get(k)
+        if allowed is None and isinstance(default, tuple) and all(isinstance(x, numbers.Real) for x in default):
+            allowed = ((len(default),),)
+        try:
+            out[k] = _conform(v, hints[k], allowed)
+        except _Bad:
+            text = " ".join(repr(v).split())  # one line (an array's repr spans several)
+            text = text if len(text) <= 80 else text[:77] + "..."
+            raise ValueError(f"{study} setting {k!r} must be {_describe(hints[k], allowed)}, got {text}") from None
+    return out
+
+
+def setup_params(setup: "Setup", params, what: str = "params"):
+    """The params of a study fit or prediction: ``setup.params`` (the paper's gains) for None, a dict of gain name
+    -> value put into them, a gains-file path read onto them, or params of the observer's own type (checked by the
+    study). ValueError (one line) for anything else."""
+    from ..fitting import gainsfile
+
+    if params is None:
+        p = setup.params
+    elif isinstance(params, Mapping):
+        p = gainsfile.apply(setup.params, params, source=what)
+    elif isinstance(params, str) or hasattr(params, "__fspath__"):
+        p = gainsfile.read_params(params, setup.entry, base=setup.params)
+    elif type(params) is type(setup.params):
+        p = params
+    else:
+        fields = ", ".join(getattr(setup.params, "_fields", ()))
+        raise ValueError(
+            f"{what} of {setup.entry} (study {setup.study}) must be its {type(setup.params).__name__} ({fields}), "
+            f"a dict of some of those fields or a gains-file path, got {type(params).__name__}"
+        )
+    if setup.check_params is not None:
+        setup.check_params(p)
+    return p
 
 
 class Setup(NamedTuple):

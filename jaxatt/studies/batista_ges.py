@@ -144,9 +144,7 @@ def config(**overrides) -> Config:
 
 def make_config(mod, overrides: dict):
     """``mod.Config`` (this module's or batista_so3's) with ``overrides``, checked by :func:`check_config`."""
-    bad = set(overrides) - set(mod.Config._fields)
-    if bad:
-        raise ValueError(f"unknown {mod.NAME} settings {sorted(bad)} (settings: {', '.join(mod.Config._fields)})")
+    overrides = base.check_settings(mod.Config, overrides, mod.NAME, shapes={"r_hat_0": ((9,), (3, 3))})
     dur = float(overrides.get("duration", mod.DURATION))
     overrides.setdefault("window_start", min(mod.WINDOW_START, 2.0 * dur / 3.0))
     cfg = mod.Config(**overrides)

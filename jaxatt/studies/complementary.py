@@ -98,9 +98,7 @@ def errors(truth: refs.VectorTruth, out: comp.Out):
 
 def config(**overrides) -> Config:
     """The Config with ``overrides``, validated (scenario, form, gains, times, window)."""
-    bad = set(overrides) - set(Config._fields)
-    if bad:
-        raise ValueError(f"unknown {NAME} settings {sorted(bad)} (settings: {', '.join(Config._fields)})")
+    overrides = base.check_settings(Config, overrides, NAME)
     dur = float(overrides.get("duration", DURATION))
     overrides.setdefault("window_start", 2.0 * dur / 3.0 if dur != DURATION else WINDOW_START)
     cfg = Config(**overrides)

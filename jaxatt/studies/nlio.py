@@ -219,9 +219,7 @@ def config(name: str, **overrides) -> Config:
     key = name[5:] if name.startswith("nlio-") else name
     if key not in CASES:
         raise ValueError(f"unknown NLIO experiment {name!r}; choose one of {EXPERIMENTS}")
-    bad = set(overrides) - set(Config._fields)
-    if bad:
-        raise ValueError(f"unknown Config fields {sorted(bad)}")
+    overrides = base.check_settings(Config, overrides, f"nlio-{key}")
     cfg = CASES[key]._replace(**overrides)
     check_config(cfg)
     return cfg
@@ -567,6 +565,7 @@ class NLIOStudy(base.Study):
         }.get(self.case, f"Simulation A, Case {self.case[4:]}")
 
     def config(self, **overrides):
+        overrides = base.check_settings(Config, overrides, self.name)
         dur = float(overrides.get("duration", DURATION))
         if dur != DURATION and "windows" not in overrides:  # reduced horizons: the windows scale with it
             f = dur / DURATION
