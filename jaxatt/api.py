@@ -353,7 +353,8 @@ def filter(
             ``r`` (3x3).
         gyr, acc, mag: (T, 3) sensor frame; rad/s, m/s^2 (specific force), any field unit. NaN marks a missing
             reading; acc / mag may be None when the observer does not need them.
-        dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing.
+        dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing, or numpy
+            datetime64 / timedelta64 (read in their own unit).
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
             read; a dict such as ``{"beta": 0.05}`` replaces those fields of the defaults); required for your own
             observer.
