@@ -26,6 +26,8 @@ Usage: python research/varfree_tune.py --phase tune [--steps 12] [--lr 0.1] [--r
        python research/varfree_tune.py --phase tune --optimizer lbfgs --steps 15   (from the Adam stage's best)
        python research/varfree_tune.py --phase evaluate [--eval-runs 300] [--eval-seed 4000]
        python research/varfree_tune.py --phase ship   (jaxatt/data/gains/batista-ges-gradient.json)
+       python research/varfree_tune.py --study batista-so3 --phase tune --optimizer lbfgs --steps 19
+       python research/varfree_tune.py --study batista-so3 --phase ship   (.../batista-so3-gradient.json)
 """
 
 from __future__ import annotations
@@ -228,23 +230,35 @@ def evaluate(runs: int, seed: int, chunk: int, only=None) -> None:
 
 
 def ship() -> None:
-    """Write the L-BFGS stage's best gains as the shipped jaxatt/data/gains/batista-ges-gradient.json: the same
-    gains file without the resume state, with the Adam stage's history (the whole path from the paper's gains)."""
+    """Write the L-BFGS stage's best gains as the shipped gains file (batista-ges: batista-ges-gradient.json, with the
+    Adam stage's history, so the file holds the whole path from the paper's gains; batista-so3:
+    batista-so3-gradient.json, L-BFGS straight from the paper's gains): the gains file without its resume state."""
     d = io.read_json(GAINS_LBFGS)
     if d.get("status") not in ("done", "early-stopped"):
         raise SystemExit(f"{GAINS_LBFGS}: status {d.get('status')!r}; finish the tuning first")
-    adam = io.read_json(GAINS_OUT)
     d.pop("resume", None)
-    d["notes"] = [
-        "tuned by gradients alone from the paper's gains (Table 1 and the literal Q of batista2019-ges Section IV) "
-        "on the variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
-        f"{sum('train_loss' in h for h in adam['history'])} Adam steps (lr 0.1), then "
-        f"{sum('train_loss' in h for h in d['history'])} L-BFGS steps, through the 8-number family of "
-        "research/ges_refined_start.py; no Monte Carlo runs were used",
-        "rerun: python research/varfree_tune.py --phase tune --steps 13; --phase tune --optimizer lbfgs --steps 15; "
-        "--phase ship",
-    ]
-    d["adam_stage"] = {"history": adam["history"], "settings": adam["settings"], "best_loss": adam.get("best_loss")}
+    n_lbfgs = sum("train_loss" in h for h in d["history"])
+    if STUDY == "batista-ges":
+        adam = io.read_json(GAINS_OUT)
+        d["notes"] = [
+            "tuned by gradients alone from the paper's gains (Table 1 and the literal Q of batista2019-ges Section IV) "
+            "on the variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
+            f"{sum('train_loss' in h for h in adam['history'])} Adam steps (lr 0.1), then "
+            f"{n_lbfgs} L-BFGS steps, through the 8-number family of "
+            "research/ges_refined_start.py; no Monte Carlo runs were used",
+            "rerun: python research/varfree_tune.py --phase tune --steps 13; --phase tune --optimizer lbfgs --steps 15; "
+            "--phase ship",
+        ]
+        d["adam_stage"] = {"history": adam["history"], "settings": adam["settings"], "best_loss": adam.get("best_loss")}
+    else:
+        d["notes"] = [
+            "tuned by gradients alone from the paper's gains (Table 1 and Section 4 of batista2019-so3) on the "
+            "variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
+            f"{n_lbfgs} L-BFGS steps through 8 numbers (two levels of alpha1, two levels and a power of t of alpha2 "
+            "on the schedule refined at 900, 1200, ..., 3300 s; alpha0, alpha3, alpha4); no Monte Carlo runs were used",
+            f"rerun: python research/varfree_tune.py --study batista-so3 --phase tune --optimizer lbfgs --steps {n_lbfgs}; "
+            "--study batista-so3 --phase ship",
+        ]
     io.write_json(SHIPPED, d)
     print(f"wrote {SHIPPED.relative_to(HERE.parent)} (best loss {d.get('best_loss')})")
 
