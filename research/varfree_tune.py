@@ -246,8 +246,8 @@ def ship() -> None:
             f"{sum('train_loss' in h for h in adam['history'])} Adam steps (lr 0.1), then "
             f"{n_lbfgs} L-BFGS steps, through the 8-number family of "
             "research/ges_refined_start.py; no Monte Carlo runs were used",
-            "rerun: python research/varfree_tune.py --phase tune --steps 13; --phase tune --optimizer lbfgs --steps 15; "
-            "--phase ship",
+            "rerun: python research/varfree_tune.py --phase tune --steps 13; "
+            "--phase tune --optimizer lbfgs --steps 15; --phase ship",
         ]
         d["adam_stage"] = {"history": adam["history"], "settings": adam["settings"], "best_loss": adam.get("best_loss")}
     else:
@@ -256,8 +256,8 @@ def ship() -> None:
             "variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
             f"{n_lbfgs} L-BFGS steps through 8 numbers (two levels of alpha1, two levels and a power of t of alpha2 "
             "on the schedule refined at 900, 1200, ..., 3300 s; alpha0, alpha3, alpha4); no Monte Carlo runs were used",
-            f"rerun: python research/varfree_tune.py --study batista-so3 --phase tune --optimizer lbfgs --steps {n_lbfgs}; "
-            "--study batista-so3 --phase ship",
+            "rerun: python research/varfree_tune.py --study batista-so3 --phase tune --optimizer lbfgs "
+            f"--steps {n_lbfgs}; --study batista-so3 --phase ship",
         ]
     io.write_json(SHIPPED, d)
     print(f"wrote {SHIPPED.relative_to(HERE.parent)} (best loss {d.get('best_loss')})")
