@@ -90,11 +90,16 @@ def so3_family_transforms(switch_times, grow_from: float = 900.0):
     return {"alpha1": t["alpha1"], "alpha2": t["alpha2"]}
 
 
+def _restart_path() -> pathlib.Path:
+    """The gains file of ``--restart``: L-BFGS with a fresh memory from the L-BFGS stage's best gains."""
+    return GAINS_LBFGS.with_name(GAINS_LBFGS.stem + "-restart.json")
+
+
 def _payload():
     return io.read_json(OUT) if OUT.exists() else {"experiment": f"{STUDY} variance-free tuning"}
 
 
-def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
+def tune(steps: int, lr, resume: bool, optimizer: str = "adam", restart: bool = False) -> None:
     from ges_refined_start import family_transforms
 
     import jaxatt
@@ -106,6 +111,8 @@ def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
     out = GAINS_LBFGS if lbfgs else GAINS_OUT
     # batista-so3: L-BFGS straight from the paper's gains (no Adam stage)
     start = str(GAINS_OUT) if lbfgs and STUDY == "batista-ges" else None
+    if restart:  # L-BFGS again, with a fresh memory, from the L-BFGS stage's best gains
+        lbfgs, optimizer, out, start = True, "lbfgs", _restart_path(), str(GAINS_LBFGS)
     t0 = time.perf_counter()
     res = jaxatt.fit(
         data=STUDY,
@@ -122,7 +129,7 @@ def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
         quiet=False,
     )
     payload = _payload()
-    payload["tuning-lbfgs" if lbfgs else "tuning"] = {
+    payload["tuning-lbfgs-restart" if restart else "tuning-lbfgs" if lbfgs else "tuning"] = {
         "status": res.status,
         "best_step": res.best_step,
         "best_loss_deg2": res.best_loss,
@@ -134,7 +141,7 @@ def tune(steps: int, lr, resume: bool, optimizer: str = "adam") -> None:
             "steps": steps,
             "lr": lr,
             "optimizer": optimizer,
-            "start": start and str(GAINS_OUT.relative_to(HERE.parent)) or "paper",
+            "start": start and str(pathlib.Path(start).relative_to(HERE.parent)) or "paper",
             "family": "research/ges_refined_start.py family_transforms (8)"
             if STUDY == "batista-ges"
             else "so3_family_transforms (8)",
@@ -151,6 +158,8 @@ def gain_sets():
         sets["varfree-tuned"] = gainsfile.apply(s.params, gainsfile.read(GAINS_OUT)["gains"])
     if GAINS_LBFGS.exists():
         sets["varfree-lbfgs"] = gainsfile.apply(s.params, gainsfile.read(GAINS_LBFGS)["gains"])
+    if _restart_path().exists():
+        sets["varfree-lbfgs-restart"] = gainsfile.apply(s.params, gainsfile.read(_restart_path())["gains"])
     return s, sets
 
 
@@ -275,6 +284,11 @@ def main(argv=None):
         help="adam from the paper's gains, or lbfgs from the Adam stage's best gains",
     )
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument(
+        "--restart",
+        action="store_true",
+        help="--phase tune: L-BFGS with a fresh memory from the L-BFGS stage's best gains (its own gains file)",
+    )
     ap.add_argument("--eval-runs", type=int, default=300)
     ap.add_argument("--eval-seed", type=int, default=4000)
     ap.add_argument("--eval-chunk", type=int, default=100)
@@ -288,7 +302,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     _use(a.study)
     if a.phase == "tune":
-        tune(a.steps, a.lr, a.resume, a.optimizer)
+        tune(a.steps, a.lr, a.resume, a.optimizer, a.restart)
     elif a.phase == "predict":
         predict()
     elif a.phase == "ship":
