@@ -238,15 +238,27 @@ def evaluate(runs: int, seed: int, chunk: int, only=None) -> None:
     io.write_json(OUT, payload)
 
 
-def ship() -> None:
+def ship(restart: bool = False) -> None:
     """Write the L-BFGS stage's best gains as the shipped gains file (batista-ges: batista-ges-gradient.json, with the
     Adam stage's history, so the file holds the whole path from the paper's gains; batista-so3:
-    batista-so3-gradient.json, L-BFGS straight from the paper's gains): the gains file without its resume state."""
-    d = io.read_json(GAINS_LBFGS)
+    batista-so3-gradient.json, L-BFGS straight from the paper's gains): the gains file without its resume state.
+    ``restart``: the restarted L-BFGS stage's best gains (batista-so3), with the first stage's history."""
+    src = _restart_path() if restart else GAINS_LBFGS
+    d = io.read_json(src)
     if d.get("status") not in ("done", "early-stopped"):
-        raise SystemExit(f"{GAINS_LBFGS}: status {d.get('status')!r}; finish the tuning first")
+        raise SystemExit(f"{src}: status {d.get('status')!r}; finish the tuning first")
     d.pop("resume", None)
     n_lbfgs = sum("train_loss" in h for h in d["history"])
+    n_restart = 0
+    if restart:
+        first = io.read_json(GAINS_LBFGS)
+        n_restart, n_lbfgs = n_lbfgs, sum("train_loss" in h for h in first["history"])
+        d["restart_start"], d["start"] = d["start"], first["start"]  # the whole path starts at the paper's gains
+        d["first_lbfgs_stage"] = {
+            "history": first["history"],
+            "settings": first["settings"],
+            "best_loss": first.get("best_loss"),
+        }
     if STUDY == "batista-ges":
         adam = io.read_json(GAINS_OUT)
         d["notes"] = [
@@ -264,9 +276,14 @@ def ship() -> None:
             "tuned by gradients alone from the paper's gains (Table 1 and Section 4 of batista2019-so3) on the "
             "variance-free loss (expected squared angle error over t >= 2400 s, jaxatt.fitting.varfree): "
             f"{n_lbfgs} L-BFGS steps through 8 numbers (two levels of alpha1, two levels and a power of t of alpha2 "
-            "on the schedule refined at 900, 1200, ..., 3300 s; alpha0, alpha3, alpha4); no Monte Carlo runs were used",
+            "on the schedule refined at 900, 1200, ..., 3300 s; alpha0, alpha3, alpha4)"
+            + (f", then {n_restart} L-BFGS steps with a fresh memory from that stage's best" if restart else "")
+            + "; no Monte Carlo runs were used",
             "rerun: python research/varfree_tune.py --study batista-so3 --phase tune --optimizer lbfgs "
-            f"--steps {n_lbfgs}; --study batista-so3 --phase ship",
+            f"--steps {n_lbfgs}; "
+            + (f"--study batista-so3 --phase tune --restart --steps {n_restart}; " if restart else "")
+            + "--study batista-so3 --phase ship"
+            + (" --restart" if restart else ""),
         ]
     io.write_json(SHIPPED, d)
     print(f"wrote {SHIPPED.relative_to(HERE.parent)} (best loss {d.get('best_loss')})")
@@ -287,7 +304,8 @@ def main(argv=None):
     ap.add_argument(
         "--restart",
         action="store_true",
-        help="--phase tune: L-BFGS with a fresh memory from the L-BFGS stage's best gains (its own gains file)",
+        help="--phase tune: L-BFGS with a fresh memory from the L-BFGS stage's best gains (its own gains file); "
+        "--phase ship: ship that stage's best gains",
     )
     ap.add_argument("--eval-runs", type=int, default=300)
     ap.add_argument("--eval-seed", type=int, default=4000)
@@ -306,7 +324,7 @@ def main(argv=None):
     elif a.phase == "predict":
         predict()
     elif a.phase == "ship":
-        ship()
+        ship(a.restart)
     else:
         evaluate(a.eval_runs, a.eval_seed, a.eval_chunk, a.sets)
 
