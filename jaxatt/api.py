@@ -103,6 +103,47 @@ def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndar
     return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
 
 
+def _valid_rows(a: np.ndarray) -> np.ndarray:
+    """(T,) True where a (T, 3) reading is present: finite and not all zero (NaN / zero rows mark a missing one)."""
+    with np.errstate(invalid="ignore"):
+        return np.all(np.isfinite(a), axis=-1) & np.any(a != 0, axis=-1)
+
+
+def start_from_valid(entry, name: str, acc: Optional[np.ndarray], mag: Optional[np.ndarray]):
+    """(acc, mag) for a registered observer that sets its start and references up from the first sample (an
+    entry with ``setup``: TRIAD and the field and gravity references): a missing acc / mag reading in row 0 is
+    replaced by that sensor's first present reading (row 0 only feeds ``init`` on hold "next"; other rows stay
+    missing). A sensor with no present reading at all is left as it is (the observer's own handling: a dead
+    magnetometer leaves the inclination)."""
+    if entry is None or entry.setup is None:
+        return acc, mag
+    out = []
+    for a in (acc, mag):
+        if a is not None and not _valid_rows(a[:1])[0]:
+            ok = _valid_rows(a)
+            if not ok.any():
+                out.append(a)
+                continue
+            a = a.copy()
+            a[0] = a[int(np.argmax(ok))]
+        out.append(a)
+    return out[0], out[1]
+
+
+def trials_start_from_valid(entry, name: str, trials: list) -> list:
+    """:func:`start_from_valid` on each trial's samples (a trial whose row 0 has all its readings is kept as is)."""
+    if entry is None or entry.setup is None:
+        return trials
+    out = []
+    for tr in trials:
+        s = tr.samples
+        acc = None if s.acc is None else np.asarray(s.acc)
+        mag = None if s.mag is None else np.asarray(s.mag)
+        acc2, mag2 = start_from_valid(entry, f"{name} (trial {tr.name})", acc, mag)
+        out.append(tr if acc2 is acc and mag2 is mag else tr._replace(samples=s._replace(acc=acc2, mag=mag2)))
+    return out
+
+
 def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
     widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
@@ -231,6 +272,7 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
                 f"params of your own observer {observer.name!r} must be its Params: a gains file or dict needs them "
                 "as the template, e.g. jaxatt.fitting.gainsfile.read_params(path, base=my_params)"
             )
+        engine.check_finite_params(params, observer.name)  # a pytree of numbers, or one line naming the leaf
         return observer, params, None, observer.name
     if hasattr(observer, "init") and hasattr(observer, "step"):
         return resolve_observer(
@@ -352,7 +394,9 @@ def filter(
             ``step(params, state, sample, dt)``, and its output carries the estimate as ``q`` (w, x, y, z) or
             ``r`` (3x3).
         gyr, acc, mag: (T, 3) sensor frame; rad/s, m/s^2 (specific force), any field unit. NaN marks a missing
-            reading; acc / mag may be None when the observer does not need them.
+            reading; acc / mag may be None when the observer does not need them. A registered observer set up
+            from the first sample (start and references: mekf, nlo, nlio, complementary, ...) takes a sensor's
+            first present reading when row 0 lacks it.
         dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing, or numpy
             datetime64 / timedelta64 (read in their own unit).
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
@@ -398,6 +442,7 @@ def filter(
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
+    acc_a, mag_a = start_from_valid(entry, name, acc_a, mag_a)
     # the scan runs over a few more samples (the last one repeated, the extra estimates dropped): recordings of
     # nearby lengths share one compiled program (estimate k of a causal scan depends on samples 0..k only)
     n_run = _run_length(n)
@@ -567,6 +612,7 @@ def broad_score(
     dt_ = compute_dtype(*trial_arrays(trials), dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
+    trials = trials_start_from_valid(entry, name, trials)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

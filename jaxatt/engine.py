@@ -81,14 +81,29 @@ def check_hold(hold: str) -> str:
 
 
 def check_finite_params(params, name: str = "observer") -> None:
-    """ValueError naming the first non-finite floating leaf of ``params`` (skipped for traced params, whose values
+    """ValueError naming the first leaf of ``params`` that is not an array of numbers (a string, an object, a class
+    or instance JAX does not know as a pytree) or is a non-finite float (skipped for traced params, whose values
     are not known here: under ``jax.grad`` a non-finite loss is the fitter's to report)."""
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         if isinstance(leaf, jax.core.Tracer):
             return
-        a = np.asarray(leaf)
+        where = jax.tree_util.keystr(path) or "(params)"
+        try:
+            a = np.asarray(leaf)
+        except Exception:  # noqa: BLE001 - e.g. a ragged list: the one line below says what is wrong
+            a = np.asarray(None)
+        if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+            raise ValueError(
+                f"params of {name}: {where} is {type(leaf).__name__} {_short(leaf)}, not an array of numbers "
+                "(params must be a pytree of numbers: a NamedTuple, dict or registered dataclass of arrays)"
+            )
         if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
             raise ValueError(f"params of {name}: {jax.tree_util.keystr(path)} is not finite ({a})")
+
+
+def _short(x, n: int = 60) -> str:
+    r = repr(x)
+    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 def cast_floats(tree, dtype):
@@ -254,6 +269,7 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
     front door (:mod:`jaxatt.api`) calls it for observers written by users."""
     name = observer.name
     obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
+    check_finite_params(params, name)
     p = cast_floats(params, obs_dtype)
     u = Interval(sample0, sample0) if check_hold(hold) == "linear" else sample0
 

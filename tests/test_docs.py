@@ -30,6 +30,12 @@ def test_concepts_example_runs():
     ns = {}
     exec(compile(code, "concepts.md", "exec"), ns)
     assert ns["est"].quat.shape == (301, 4) and np.all(np.isfinite(ns["res"].per_run["mean_angle_error_deg"]))
+    # the same observer in float32 (as for BROAD fits): its constants follow the state's dtype, and the estimate
+    # agrees with the float64 run to float32 rounding
+    s = ns["samples"]
+    est32 = ns["jaxatt"].filter(ns["mine"], s.gyr, s.acc, s.mag, dt=0.01, params=ns["Params"](1.0), dtype="float32")
+    assert est32.quat.dtype == np.float32 and ns["est"].quat.dtype == np.float64
+    np.testing.assert_allclose(np.abs(np.sum(est32.quat * ns["est"].quat, axis=-1)), 1.0, atol=1e-5)
 
 
 def test_reference_covers_every_public_module():

@@ -3,6 +3,7 @@ monte_carlo take it like a registered one. Each result is checked against a seco
 (the numpy BROAD metric of the stored estimates, the fused simulation against a recorded log of the same run, a
 finite difference), and bad input gets one clear line."""
 
+import dataclasses
 import json
 import warnings
 from typing import NamedTuple
@@ -267,6 +268,11 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=None), "seed must be an integer"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", scenario="x"), "scenario must be an AHRS scenario"),
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, window_start="a"), "window_start must be"),
+        # params that are not a pytree of numbers (a plain dataclass, the Params class itself), one Trial not in a list
+        (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=_PlainParams()), "not an array of num"),
+        (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MyParams, runs=2), r"is type .*not an array of numbers"),
+        (lambda g, a, m: jaxatt.fit(MY_OBSERVER, _PlainParams(), [_tiny_trial()], steps=1), "not an array of num"),
+        (lambda g, a, m: jaxatt.broad_score("mahony", None, _tiny_trial()), r"a list of trials, got one Trial"),
         # fit's optimiser arguments
         (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, clip=-1.0), "clip must be"),
         (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], val_every=0), "val_every must be"),
@@ -278,6 +284,12 @@ def test_bad_input_is_one_clear_line(call, match):
     with pytest.raises(ValueError, match=match) as e:
         call(g, a, m)
     assert "\n" not in str(e.value)
+
+
+@dataclasses.dataclass
+class _PlainParams:  # not registered as a pytree: JAX sees one opaque leaf
+    kp: float = 1.0
+    ki: float = 0.3
 
 
 def _mine(g, a, m, *, step):
@@ -361,6 +373,27 @@ def test_a_degenerate_first_sample_still_starts_on_so3():
     est = jaxatt.filter("nlo", g, a, np.zeros((n, 3)), dt=0.01)
     np.testing.assert_allclose(np.linalg.norm(est.quat, axis=-1), 1.0, atol=1e-9)
     np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["mekf", "nlio"])
+def test_observers_set_up_from_the_first_sample_take_the_first_present_reading(name):
+    """mekf, nlo, nlio and complementary take their start and references (TRIAD, the field, |a|) from sample 0;
+    with its mag (or acc) reading missing (NaN, a slower magnetometer) every estimate was NaN. Now a missing row-0
+    reading is the sensor's first present one: the estimate equals the run on the recording whose row 0 holds
+    those readings (row 0 only feeds init on hold "next"), and it follows the truth of the simulated rotation."""
+    samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=2.0, dt=0.01)
+    g, a, m = (np.asarray(x, float) for x in (samples.gyr, samples.acc, samples.mag))
+    gaps_a, gaps_m = a.copy(), m.copy()
+    gaps_a[0] = np.nan
+    gaps_m[:3] = np.nan
+    est = jaxatt.filter(name, g, gaps_a, gaps_m, dt=0.01)
+    filled_a, filled_m = gaps_a.copy(), gaps_m.copy()
+    filled_a[0], filled_m[0] = a[1], m[3]
+    ref = jaxatt.filter(name, g, filled_a, filled_m, dt=0.01)
+    np.testing.assert_array_equal(est.quat, ref.quat)
+    r_err = np.asarray(truth.r, float)[1:] @ np.swapaxes(est.rotation[1:], -1, -2)  # sensor-to-ENU truth
+    angle = np.degrees(np.arccos(np.clip((np.trace(r_err, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+    assert np.all(np.isfinite(angle)) and angle.max() < 3.0, angle.max()
 
 
 def _filter_scan(name: str, n_run: int):

@@ -207,6 +207,8 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
     quaternions (w, x, y, z) where finite, movement (N,) bool, rate_hz a positive number agreeing with
     ``samples.t`` (1 %). ``need_scored``: every trial has a scored sample (movement and finite truth), as a fit's
     loss needs (a trial with none would add a zero error)."""
+    if isinstance(trials, Trial):
+        raise ValueError(f"{what} must be a list of trials, got one Trial ({trials.name}): pass [trial]")
     trials = list(trials)
     if not trials:
         raise ValueError(f"{what} is empty (load them with jaxatt.data.broad.load)")
