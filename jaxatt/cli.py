@@ -309,8 +309,13 @@ def _parser() -> argparse.ArgumentParser:
 
     bp = sub.add_parser("broad", help="run an observer on BROAD trials and print the BROAD metric")
     bp.add_argument("--data-dir", required=True, help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
-    bp.add_argument("--observer", default="robust", help="a registered observer (default robust)")
+    bp.add_argument(
+        "--observer",
+        default="robust",
+        help="a registered observer (default robust), or module:attr of your own Observer (sensor-to-ENU)",
+    )
     bp.add_argument("--gains", default=None, help="gains file (default: the observer's shipped or default gains)")
+    bp.add_argument("--params", default=None, help="module:attr of the params of your own observer")
     bp.add_argument("--trials", nargs="*", default=None, help="trial names, numbers, groups or fold1/fold2")
     bp.add_argument("--json", default=None)
     bp.add_argument("--float32", action="store_true")
@@ -737,6 +742,19 @@ def _broad_table(title: str, score) -> None:
     )
 
 
+def _gains_json(params) -> dict:
+    """{gain name: value as nested lists} of a Params NamedTuple (every field, None as null) or any pytree of your
+    own observer (its leaves by path)."""
+    if hasattr(params, "_asdict"):
+        return {k: np.asarray(v).tolist() for k, v in params._asdict().items()}
+    import jax
+
+    return {
+        jax.tree_util.keystr(k).strip("[]'.") or "params": np.asarray(v).tolist()
+        for k, v in jax.tree_util.tree_flatten_with_path(params)[0]
+    }
+
+
 def _broad(args) -> int:
     from . import api, io
     from .data import broad
@@ -746,19 +764,21 @@ def _broad(args) -> int:
     )
     from .progress import Heartbeat
 
+    observer, params = _observer_and_params(args)
     trials = broad.load(args.data_dir, args.trials)
     dtype = "float32" if args.float32 else "float64"
     with Heartbeat(f"running {args.observer} on {len(trials)} trials", bool(_progress(args))):
-        score = api.broad_score(args.observer, args.gains, trials, dtype=dtype, offline=args.offline)
+        score = api.broad_score(observer, params, trials, dtype=dtype, offline=args.offline)
     shipped = getattr(api.registry.get(args.observer), "shipped", None) if args.observer in api.registry.INDEX else None
-    source = args.gains or (f"shipped gains {shipped}" if shipped else "default gains")
+    source = args.gains or (f"--params {args.params}" if args.params else None)
+    source = source or (f"shipped gains {shipped}" if shipped else "default gains")
     _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
-    params = api.resolve_observer(args.observer, args.gains)[1]
+    params = api.resolve_observer(observer, params)[1]
     io.write_json(
         args.json,
         {
             "observer": score.observer,
-            "gains": {k: np.asarray(v).tolist() for k, v in params._asdict().items()},
+            "gains": _gains_json(params),
             "gains_source": source,
             "dtype": dtype,
             "offline": bool(args.offline),
@@ -860,14 +880,11 @@ def _load_any_log(path: str):
 FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
 
 
-def _filter(args) -> int:
-    from . import api, io
+def _observer_and_params(args):
+    """(observer, params) of ``--observer`` (a registered name, or module:attr of your own Observer or registry
+    Entry), ``--gains`` (registered) and ``--params`` (module:attr, your own)."""
     from .observers import registry
 
-    out = io.check_output_path(
-        args.out, "--out", suffixes=FILTER_OUTPUTS, inputs={"--log": args.log, "--gains": args.gains}
-    )
-    assert out is not None  # --out is required
     if ":" in args.observer:
         observer = _import_attr(args.observer, "--observer")
         params = _import_attr(args.params, "--params") if args.params else None
@@ -875,10 +892,20 @@ def _filter(args) -> int:
             params = args.gains
         elif args.gains:
             raise UserError("--gains applies to registered observers (or registry Entry objects); use --params")
-    else:
-        if args.params:
-            raise UserError("--params applies to your own observer (module:attr); use --gains for a registered one")
-        observer, params = args.observer, args.gains
+        return observer, params
+    if args.params:
+        raise UserError("--params applies to your own observer (module:attr); use --gains for a registered one")
+    return args.observer, args.gains
+
+
+def _filter(args) -> int:
+    from . import api, io
+
+    out = io.check_output_path(
+        args.out, "--out", suffixes=FILTER_OUTPUTS, inputs={"--log": args.log, "--gains": args.gains}
+    )
+    assert out is not None  # --out is required
+    observer, params = _observer_and_params(args)
     from .progress import Heartbeat
 
     samples, rate = _load_any_log(args.log)

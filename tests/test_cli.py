@@ -166,29 +166,33 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
             np.testing.assert_array_equal(z[name], table[name], err_msg=name)
 
 
+#: a user's own observer module (gyro integration only): --observer my_filter:OBSERVER --params my_filter:PARAMS
+MY_FILTER_MODULE = (
+    "import jax.numpy as jnp\n"
+    "from typing import NamedTuple\n"
+    "import jaxatt\n"
+    "from jaxatt import so3\n"
+    "class P(NamedTuple):\n"
+    "    k: jnp.ndarray\n"
+    "class S(NamedTuple):\n"
+    "    t: jnp.ndarray\n"
+    "    q: jnp.ndarray\n"
+    "def init(p, s):\n"
+    "    return S(jnp.asarray(s.t), so3.quat_canonical(so3.matrix_to_quat(so3.triad(s.acc, s.mag))))\n"
+    "def step(p, st, s, dt):\n"
+    "    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1), s.gyr]))\n"
+    "    q = q / jnp.linalg.norm(q)\n"
+    "    return S(st.t + dt, q), S(st.t + dt, q)\n"
+    "OBSERVER = jaxatt.Observer(init, step, 'gyro_only')\n"
+    "PARAMS = P(jnp.asarray(1.0))\n"
+)
+
+
 def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
     """--observer module:attr --params module:attr: an observer defined in the user's own file."""
     from jaxatt.data import logs
 
-    (tmp_path / "my_filter.py").write_text(
-        "import jax.numpy as jnp\n"
-        "from typing import NamedTuple\n"
-        "import jaxatt\n"
-        "from jaxatt import so3\n"
-        "class P(NamedTuple):\n"
-        "    k: jnp.ndarray\n"
-        "class S(NamedTuple):\n"
-        "    t: jnp.ndarray\n"
-        "    q: jnp.ndarray\n"
-        "def init(p, s):\n"
-        "    return S(jnp.asarray(s.t), so3.quat_canonical(so3.matrix_to_quat(so3.triad(s.acc, s.mag))))\n"
-        "def step(p, st, s, dt):\n"
-        "    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1), s.gyr]))\n"
-        "    q = q / jnp.linalg.norm(q)\n"
-        "    return S(st.t + dt, q), S(st.t + dt, q)\n"
-        "OBSERVER = jaxatt.Observer(init, step, 'gyro_only')\n"
-        "PARAMS = P(jnp.asarray(1.0))\n"
-    )
+    (tmp_path / "my_filter.py").write_text(MY_FILTER_MODULE)
     samples, r_true = _sim_log(5.0)
     log = tmp_path / "log.npz"
     logs.save_log(log, samples)
@@ -316,9 +320,10 @@ def _write_broad_trial(path, samples, q_true, rate):
         f["movement"] = np.arange(n) > n // 5
 
 
-def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
+def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys, monkeypatch):
     """Two small BROAD-format trials (simulated, ENU): jaxatt broad prints and writes the metric per trial and
-    group; broad-tune learns and writes a gains file that jaxatt broad reads back."""
+    group, for a registered observer and for your own (--observer module:attr --params module:attr); broad-tune
+    learns and writes a gains file that jaxatt broad reads back."""
     pytest.importorskip("h5py")
     import jaxatt
     from jaxatt import so3
@@ -340,6 +345,21 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys):
     assert b["trials"]["24_disturbed_sim"]["total_rmse_deg"] == pytest.approx(
         score.trials["24_disturbed_sim"].total_rmse_deg, rel=1e-12
     )
+    # your own observer, as jaxatt filter takes it
+    (tmp_path / "my_filter.py").write_text(MY_FILTER_MODULE)
+    monkeypatch.chdir(tmp_path)
+    own = tmp_path / "own.json"
+    args = ["broad", "--data-dir", str(d), "--observer", "my_filter:OBSERVER", "--params", "my_filter:PARAMS"]
+    assert cli.main(args + ["--json", str(own)]) == 0
+    mine = json.loads(own.read_text())
+    my_filter = sys.modules["my_filter"]  # imported by the command
+
+    ref = jaxatt.broad_score(my_filter.OBSERVER, my_filter.PARAMS, trials)
+    assert mine["observer"] == "gyro_only" and mine["gains"] == {"k": 1.0}
+    for name, t in ref.trials.items():
+        assert mine["trials"][name]["total_rmse_deg"] == pytest.approx(t.total_rmse_deg, rel=1e-12)
+    assert cli.main(args[:-2]) == 2  # no --params
+    assert "params are required for your own observer" in capsys.readouterr().err
     g = tmp_path / "g.json"
     assert (
         cli.main(
