@@ -191,6 +191,7 @@ def _times(t, dt, n: int):
                 t = timestamp_seconds(t)
             elif t.dtype.kind not in "iuf":
                 raise TypeError
+            narrow = t.dtype == np.float32 or t.dtype == np.float16
             t = np.asarray(t, np.float64)
         except (TypeError, ValueError):
             raise ValueError(
@@ -201,7 +202,13 @@ def _times(t, dt, n: int):
             raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
         d = np.diff(t)
         if not np.all(np.isfinite(t)) or np.any(d <= 0):
-            raise ValueError("t must be finite and strictly increasing (s)")
+            hint = ""
+            if narrow and np.all(np.isfinite(t)) and np.max(np.abs(t)) > 1e4:
+                hint = (
+                    f"; float32 timestamps near {np.max(np.abs(t)):.3g} s cannot resolve the sample interval: "
+                    "pass them as float64 or relative to the first"
+                )
+            raise ValueError("t must be finite and strictly increasing (s)" + hint)
         return t, True
     try:
         if isinstance(dt, (bool, np.bool_)):
@@ -649,6 +656,12 @@ def broad_score(
             )
         per[tr.name] = TrialScore(
             m["total_rmse_deg"], m["heading_rmse_deg"], m["inclination_rmse_deg"], tr.group or B.group_of(tr.name)
+        )
+    if all(np.isnan(v.total_rmse_deg) for v in per.values()):
+        warnings.warn(
+            f"{name}: no trial has a scored sample (movement with finite ground truth): every metric is NaN and "
+            "there are no group means",
+            stacklevel=2,
         )
     return BroadScore(per, group_means(per), name, wall)
 

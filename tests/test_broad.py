@@ -582,3 +582,14 @@ def test_a_6d_observer_on_broad_is_warned_about_its_heading(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         jaxatt.broad_score("vqf", None, [tr])
+
+
+def test_broad_score_without_a_scored_sample_says_so():
+    """Trials without a scored sample (no movement flagged) have NaN metrics and no group means; broad_score warns
+    instead of returning an empty table silently."""
+    import jaxatt
+
+    idle = _synthetic_trial("01_a")._replace(movement=np.zeros(50, bool))
+    with pytest.warns(UserWarning, match="no trial has a scored sample"):
+        s = jaxatt.broad_score("madgwick", None, [idle])
+    assert np.isnan(s.trials["01_a"].total_rmse_deg) and "undisturbed" not in s.groups

@@ -268,6 +268,10 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=None), "seed must be an integer"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", scenario="x"), "scenario must be an AHRS scenario"),
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, window_start="a"), "window_start must be"),
+        (
+            lambda g, a, m: jaxatt.filter("mahony", g, a, m, t=(1.7e9 + 0.01 * np.arange(50)).astype(np.float32)),
+            "float32 timestamps near 1.7e.09 s cannot resolve the sample interval",
+        ),
         # params that are not a pytree of numbers (a plain dataclass, the Params class itself), one Trial not in a list
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=_PlainParams()), "not an array of num"),
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MyParams, runs=2), r"is type .*not an array of numbers"),
