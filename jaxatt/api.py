@@ -309,6 +309,38 @@ def check_own_observer(observer: Observer, params, entry, dtype, hold: str, acc:
     engine.check_observer(observer, params, sample0, 1.0, dtype, hold)
 
 
+#: how many samples the front door runs a user's observer over before a batch run, to check its estimate
+CHECK_SAMPLES = 200
+
+
+def check_own_estimate(observer: Observer, params, entry, samples: ImuSample, dt: float, dtype, hold: str) -> None:
+    """For an observer written by a user (``entry`` None): ValueError (one line) unless its estimate is a rotation
+    (unit ``q``, or ``r`` a rotation matrix, to 1e-3) over the first :data:`CHECK_SAMPLES` ``samples`` (sample
+    period ``dt`` s), as :func:`filter` requires: the batch runs (:func:`monte_carlo`, :func:`broad_score`,
+    :func:`jaxatt.fit`) would otherwise score a non-rotation silently."""
+    if entry is not None:
+        return
+    n = min(CHECK_SAMPLES, int(np.shape(samples.gyr)[0]))
+    cut = lambda a: None if a is None else np.asarray(a)[:n]  # noqa: E731
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            filter(
+                observer,
+                cut(samples.gyr),
+                cut(samples.acc),
+                cut(samples.mag),
+                dt=dt,
+                params=params,
+                hold=hold,
+                dtype=dtype,
+            )
+    except FloatingPointError:
+        return  # a non-finite estimate: the batch run names it where it happens
+    except ValueError as e:
+        raise ValueError(f"{e} (checked on the first {n} samples before the batch run)") from None
+
+
 def _override(base, gains: dict, name: str):
     """``base`` (a Params NamedTuple) with the fields named in ``gains`` replaced (ValueError for other names)."""
     unknown = sorted(set(gains) - set(base._fields))
@@ -624,6 +656,7 @@ def broad_score(
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold)
+    check_own_estimate(obs, p, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)
     if entry is not None and "mag" not in entry.needs:
         warnings.warn(
             f"{name} does not use the magnetometer: its heading is not observable, so its total and heading errors "
@@ -752,6 +785,11 @@ def monte_carlo(
     ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
     if not 0.0 <= ws < duration:
         raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")
+    if entry is None:
+        step = mc.check_dt(dt)
+        n_check = max(1, min(CHECK_SAMPLES - 1, int(round(duration / step))))
+        log, _ = mc.simulate_log(scn, duration=n_check * step, dt=step, seed=int(seed) if isinstance(seed, int) else 0)
+        check_own_estimate(obs, p, entry, log, step, dt_, hold)
     res = mc.monte_carlo(
         scn,
         obs,

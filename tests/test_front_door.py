@@ -272,6 +272,10 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
             lambda g, a, m: jaxatt.filter("mahony", g, a, m, t=(1.7e9 + 0.01 * np.arange(50)).astype(np.float32)),
             "float32 timestamps near 1.7e.09 s cannot resolve the sample interval",
         ),
+        # an estimate that is not a rotation: filter refuses it, and so do the batch runs before they score it
+        (lambda g, a, m: jaxatt.monte_carlo(_SCALED_R, MY_PARAMS, runs=2, duration=1.0), "before the batch run"),
+        (lambda g, a, m: jaxatt.broad_score(_SCALED_R, MY_PARAMS, [_tiny_trial()]), "not a unit quaternion .* batch"),
+        (lambda g, a, m: jaxatt.fit(_SCALED_R, MY_PARAMS, [_tiny_trial()], steps=1), "must be a rotation matrix"),
         # params that are not a pytree of numbers (a plain dataclass, the Params class itself), one Trial not in a list
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=_PlainParams()), "not an array of num"),
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MyParams, runs=2), r"is type .*not an array of numbers"),
@@ -288,6 +292,14 @@ def test_bad_input_is_one_clear_line(call, match):
     with pytest.raises(ValueError, match=match) as e:
         call(g, a, m)
     assert "\n" not in str(e.value)
+
+
+def _scaled_r_step(p, st, s, dt):  # 3 R: a rotation matrix times 3 (an integrator that is not re-orthonormalised)
+    st2, out = my_step(p, st, s, dt)
+    return st2, {"r": 3.0 * so3.quat_to_matrix(out.q)}
+
+
+_SCALED_R = Observer(my_init, _scaled_r_step, "scaled_r")
 
 
 @dataclasses.dataclass

@@ -817,7 +817,14 @@ def _fit(
     given = [k for k, v in study_only.items() if v]
     if given:
         raise ValueError(f"{', '.join(given)}: options of a fit on a study, not on recorded trials")
-    from ..api import check_own_observer, compute_dtype, resolve_observer, trial_arrays, trials_start_from_valid
+    from ..api import (
+        check_own_estimate,
+        check_own_observer,
+        compute_dtype,
+        resolve_observer,
+        trial_arrays,
+        trials_start_from_valid,
+    )
     from ..data import broad as B
 
     trials = list(data) if data is not None else []
@@ -841,6 +848,7 @@ def _fit(
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p0, entry, dt_, hold)
+    check_own_estimate(obs, p0, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)
     objective, n, take = recorded_objective(
         obs, bound, trials, hold=hold, dtype=dt_, step_remat=bool(step_remat), checkpoint=checkpoint
     )
