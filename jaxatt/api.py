@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from typing import Any, Dict, NamedTuple, Optional, Sequence, Union
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Union
 
 import jax
 import jax.numpy as jnp
@@ -109,7 +109,7 @@ def _valid_rows(a: np.ndarray) -> np.ndarray:
         return np.all(np.isfinite(a), axis=-1) & np.any(a != 0, axis=-1)
 
 
-def start_from_valid(entry, name: str, acc: Optional[np.ndarray], mag: Optional[np.ndarray]):
+def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray]):
     """(acc, mag) for a registered observer that sets its start and references up from the first sample (an
     entry with ``setup``: TRIAD and the field and gravity references): a missing acc / mag reading in row 0 is
     replaced by that sensor's first present reading (row 0 only feeds ``init`` on hold "next"; other rows stay
@@ -117,7 +117,7 @@ def start_from_valid(entry, name: str, acc: Optional[np.ndarray], mag: Optional[
     magnetometer leaves the inclination)."""
     if entry is None or entry.setup is None:
         return acc, mag
-    out = []
+    out: List[Optional[np.ndarray]] = []
     for a in (acc, mag):
         if a is not None and not _valid_rows(a[:1])[0]:
             ok = _valid_rows(a)
@@ -130,7 +130,7 @@ def start_from_valid(entry, name: str, acc: Optional[np.ndarray], mag: Optional[
     return out[0], out[1]
 
 
-def trials_start_from_valid(entry, name: str, trials: list) -> list:
+def trials_start_from_valid(entry, trials: list) -> list:
     """:func:`start_from_valid` on each trial's samples (a trial whose row 0 has all its readings is kept as is)."""
     if entry is None or entry.setup is None:
         return trials
@@ -139,7 +139,7 @@ def trials_start_from_valid(entry, name: str, trials: list) -> list:
         s = tr.samples
         acc = None if s.acc is None else np.asarray(s.acc)
         mag = None if s.mag is None else np.asarray(s.mag)
-        acc2, mag2 = start_from_valid(entry, f"{name} (trial {tr.name})", acc, mag)
+        acc2, mag2 = start_from_valid(entry, acc, mag)
         out.append(tr if acc2 is acc and mag2 is mag else tr._replace(samples=s._replace(acc=acc2, mag=mag2)))
     return out
 
@@ -481,7 +481,7 @@ def filter(
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
-    acc_a, mag_a = start_from_valid(entry, name, acc_a, mag_a)
+    acc_a, mag_a = start_from_valid(entry, acc_a, mag_a)
     # the scan runs over a few more samples (the last one repeated, the extra estimates dropped): recordings of
     # nearby lengths share one compiled program (estimate k of a causal scan depends on samples 0..k only)
     n_run = _run_length(n)
@@ -651,7 +651,7 @@ def broad_score(
     dt_ = compute_dtype(*trial_arrays(trials), dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
-    trials = trials_start_from_valid(entry, name, trials)
+    trials = trials_start_from_valid(entry, trials)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

@@ -837,8 +837,8 @@ def _fit(
     val_trials = B.check_trials(val_list, "val", need_scored=True) if val_list else []
     dt_ = compute_dtype(*trial_arrays([*trials, *val_trials]), dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
-    trials = trials_start_from_valid(entry, name, trials)
-    val_trials = trials_start_from_valid(entry, name, val_trials)
+    trials = trials_start_from_valid(entry, trials)
+    val_trials = trials_start_from_valid(entry, val_trials)
     p0 = jax.tree_util.tree_map(
         lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a,
         _start(p0, start, entry),
