@@ -9,7 +9,7 @@
 * ``batista-ges-gradient.json``: batista-ges tuned by gradients alone on the variance-free loss (no runs; Adam then
   L-BFGS from the paper's gains; research/varfree_tune.py).
 * ``batista-so3-gradient.json``: batista-so3 tuned by gradients alone on the variance-free loss (no runs; L-BFGS
-  from the paper's gains; research/varfree_tune.py --study batista-so3).
+  from the paper's gains, then L-BFGS restarted with a fresh memory; research/varfree_tune.py --study batista-so3).
 * ``nlio-case1-gradient.json``: the NLIO-FG gains of nlio-case1 tuned by gradients alone on the variance-free loss
   (L-BFGS from the paper's gains, no runs; research/nlio_varfree.py compares it held out).
 
