@@ -1078,13 +1078,15 @@ _DEFERRED: List[int] = []
 #: non-empty while main() imports JAX and the library: a KeyboardInterrupt raised inside the import of a compiled
 #: extension can leave it half-initialised and crash the interpreter (SIGSEGV), so a Ctrl-C then leaves at once
 _IMPORTING: List[bool] = []
-#: functions in which an exception is swallowed ("Exception ignored in ..."): a Ctrl-C landing there is re-sent
-_SWALLOWING = {"__del__", "_xla_gc_callback"}
+#: functions in which a Ctrl-C is re-sent 50 ms later instead of raised: those that swallow an exception ("Exception
+#: ignored in ...") and the atomic file write (a KeyboardInterrupt inside ``np.savez`` leaves a half-closed ZipFile
+#: whose ``__del__`` prints a traceback at exit; the write takes milliseconds, then the interrupt lands)
+_DEFERRING_CALLS = {"__del__", "_xla_gc_callback", "write_atomic"}
 
 
-def _in_swallowing_call(frame) -> bool:
+def _in_deferring_call(frame) -> bool:
     while frame is not None:
-        if frame.f_code.co_name in _SWALLOWING:
+        if frame.f_code.co_name in _DEFERRING_CALLS:
             return True
         frame = frame.f_back
     return False
@@ -1093,14 +1095,15 @@ def _in_swallowing_call(frame) -> bool:
 def _on_sigint(signum, frame):
     """Ctrl-C: remember it and raise KeyboardInterrupt where Python runs next (a second Ctrl-C leaves at once).
 
-    Inside a garbage-collector callback or ``__del__`` the exception would be printed and dropped, so the signal is
-    sent again 50 ms later instead."""
+    Inside a garbage-collector callback or ``__del__`` the exception would be printed and dropped, and inside an
+    atomic file write it would leave a half-written archive object behind, so the signal is sent again 50 ms later
+    instead."""
     if _IMPORTING or (_INTERRUPTED and not _DEFERRED):  # nothing computed yet, or a second Ctrl-C
         os.write(2, b"jaxatt: interrupted\n")
         os._exit(130)
     if not _INTERRUPTED:
         _INTERRUPTED.append(signum)
-    if _in_swallowing_call(frame):
+    if _in_deferring_call(frame):
         _DEFERRED.append(signum)
         threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
         return

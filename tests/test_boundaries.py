@@ -497,6 +497,34 @@ def test_sigint_exits_130_and_keeps_a_finished_result(tmp_path, uninterrupted, m
     assert out.read_bytes() == uninterrupted.read_bytes(), "a finished result was replaced"
 
 
+def test_sigint_inside_an_atomic_npz_write_lands_after_it(tmp_path):
+    """The CLI's Ctrl-C handler defers an interrupt that arrives inside ``io.write_atomic``: raised inside
+    ``np.savez`` it left a half-closed ZipFile whose ``__del__`` printed a traceback at exit (a CI failure)."""
+    from jaxatt import io
+
+    arrays = {f"a{i}": np.arange(1000.0) + i for i in range(50)}
+    sent = []
+
+    def write(f):
+        np.savez(f, **{k: v for k, v in list(arrays.items())[:25]})
+        if not sent:
+            sent.append(True)
+            os.kill(os.getpid(), signal.SIGINT)  # delivered at the next bytecode, inside the write
+        f.write(b"")
+
+    previous = signal.signal(signal.SIGINT, cli._on_sigint)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            io.write_atomic(tmp_path / "runs.npz", write, binary=True)
+            time.sleep(2.0)  # the re-sent signal lands here, after the write
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        cli._INTERRUPTED.clear()
+        cli._DEFERRED.clear()
+    with np.load(tmp_path / "runs.npz") as z:
+        assert sorted(z.files) == sorted(list(arrays)[:25])
+
+
 def test_sigkill_then_resume_equals_the_uninterrupted_run(tmp_path, uninterrupted, capsys):
     out = tmp_path / "mc.json"
     runs = tmp_path / "mc.json.runs.npz"
