@@ -204,8 +204,12 @@ def test_gains_json_round_trip(name, make, tmp_path):
     q = gainsfile.read_params(str(path), name)
     for f in p._fields:
         np.testing.assert_allclose(np.asarray(getattr(q, f)), np.asarray(getattr(p, f)), rtol=1e-15)
+    other = so3_params() if name == "batista-ges" else ges_params()
     with pytest.raises(ValueError, match="holds gains of"):
         gainsfile.read_params(str(path), "batista-ges" if name != "batista-ges" else "batista-so3")
+    with pytest.raises(ValueError, match="holds gains of"):  # without an entry: the base params' type is checked
+        gainsfile.read_params(str(path), base=other)
+    np.testing.assert_array_equal(np.asarray(gainsfile.read_params(str(path), base=p).alpha2), np.asarray(p.alpha2))
     # a hand-edited file with a wrong shape, or an invalid gain, is refused
     payload["gains"]["alpha2"]["value"] = payload["gains"]["alpha2"]["value"][:-1]
     bad = tmp_path / "bad.json"

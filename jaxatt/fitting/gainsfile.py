@@ -236,6 +236,8 @@ def read_params(path, entry=None, base=None, *, dtype=None):
             base = entry.default_params(dtype=dtype)
     if base is None:
         raise ValueError("read_params needs a registry entry or base params")
+    if entry is None:
+        _check_base_type(path, d["observer"], base)
     params = apply(base, d["gains"], source=f"gains file {path}")
     if entry is not None and entry.check is not None:
         try:
@@ -248,6 +250,21 @@ def read_params(path, entry=None, base=None, *, dtype=None):
 
         warnings.warn(note, stacklevel=2)
     return params
+
+
+def _check_base_type(path, observer: str, base) -> None:
+    """A file of a registered observer read into ``base`` params of another type (e.g. batista-ges gains into
+    batista-so3 params: some fields share names and shapes) is refused; a user's own observer is not checked."""
+    from ..observers import registry
+
+    if observer not in registry.names():
+        return
+    want = type(registry.get(observer).default_params())
+    if type(base) is not want:
+        raise ValueError(
+            f"gains file {path}: holds gains of {observer!r}, whose params are {want.__module__}.{want.__qualname__}, "
+            f"not {type(base).__module__}.{type(base).__qualname__}"
+        )
 
 
 def shipped_path(name: str):
