@@ -274,9 +274,9 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
             raise ValueError(
                 f"params are required for your own observer {observer.name!r} (registered observers have defaults)"
             )
-        if isinstance(params, (str, dict)):
+        if isinstance(params, str):  # a dict is taken as the params themselves (a pytree like any other)
             raise ValueError(
-                f"params of your own observer {observer.name!r} must be its Params: a gains file or dict needs them "
+                f"params of your own observer {observer.name!r} must be its params pytree: a gains file needs them "
                 "as the template, e.g. jaxatt.fitting.gainsfile.read_params(path, base=my_params)"
             )
         engine.check_finite_params(params, observer.name)  # a pytree of numbers, or one line naming the leaf
@@ -556,7 +556,10 @@ def filter(
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
-    nonfinite = [k for k, v in outputs.items() if np.issubdtype(v.dtype, np.floating) and not np.all(np.isfinite(v))]
+    # from estimate 1 on: estimate 0's fields that init's state does not hold are NaN by design (initial_output)
+    nonfinite = [
+        k for k, v in outputs.items() if np.issubdtype(v.dtype, np.floating) and not np.all(np.isfinite(v[1:]))
+    ]
     if nonfinite:
         warnings.warn(
             f"{name}: the estimate is finite but the output {', '.join(nonfinite)} "

@@ -328,10 +328,26 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
                 stacklevel=3,
             )
 
+    if observer.output is None:  # estimate 0 is read from init's state (initial_output): it must hold one
+        have = _state_fields(st)
+        if not any(tuple(getattr(have.get(k), "shape", ())) == shape for k, shape in (("q", (4,)), ("r", (3, 3)))):
+            raise ValueError(
+                f"observer {name!r}: estimate 0 is read from init's state, which has no field q (4,) (w, x, y, z) "
+                f"or r (3x3) (state fields: {sorted(have) or type(st).__name__}); add one to the state or give "
+                "Observer(..., output=fn(params, state))"
+            )
+
 
 # ------------------------------------------------------------------------------------------------------------
 # Estimate 0
 # ------------------------------------------------------------------------------------------------------------
+def _state_fields(state) -> dict:
+    """name -> value of a NamedTuple or dict state ({} for any other pytree)."""
+    if hasattr(state, "_asdict"):
+        return dict(state._asdict())
+    return dict(state) if isinstance(state, dict) else {}
+
+
 def initial_output(observer: Observer, params, state, sample0, dt):
     """The output of ``init``'s state, with the structure ``step`` returns.
 
@@ -343,11 +359,11 @@ def initial_output(observer: Observer, params, state, sample0, dt):
     if observer.output is not None:
         return observer.output(params, state)
     shape = jax.eval_shape(lambda: observer.step(params, state, sample0, dt)[1])
-    have = state._asdict() if hasattr(state, "_asdict") else {}
-    if "r" not in have and hasattr(state, "q"):
-        have = dict(have, r=so3.quat_to_matrix(state.q))
-    if "q" not in have and hasattr(state, "r"):
-        have = dict(have, q=so3.quat_canonical(so3.matrix_to_quat(state.r)))
+    have = _state_fields(state)
+    if "r" not in have and "q" in have:
+        have = dict(have, r=so3.quat_to_matrix(have["q"]))
+    if "q" not in have and "r" in have:
+        have = dict(have, q=so3.quat_canonical(so3.matrix_to_quat(have["r"])))
 
     def fill(name, s):
         v = have.get(name)

@@ -97,6 +97,71 @@ def test_filter_runs_your_observer_and_converges():
     np.testing.assert_allclose(est.outputs["bias"][-1], [0.01, 0.0, 0.0], atol=2e-3)
 
 
+def test_your_observer_with_dict_params_is_the_same_filter():
+    """Params are any pytree: an observer written over a dict of gains runs (a dict is not mistaken for a partial
+    override, as it is for a registered observer) and equals the NamedTuple-params observer on the same log."""
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.05, mag_noise_std=0.2)
+    samples, _ = montecarlo.simulate_log(scn, duration=3.0, dt=0.01)
+    dict_obs = Observer(my_init, lambda p, st, s, dt: my_step(MyParams(p["kp"], p["ki"]), st, s, dt), "my_dict")
+    gains = {"kp": jnp.asarray(1.0), "ki": jnp.asarray(0.3)}
+    got = jaxatt.filter(dict_obs, samples.gyr, samples.acc, samples.mag, dt=0.01, params=gains)
+    ref = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
+    np.testing.assert_array_equal(got.quat, ref.quat)
+    with pytest.raises(ValueError, match="a gains file needs them as the template"):
+        jaxatt.filter(dict_obs, samples.gyr, samples.acc, samples.mag, dt=0.01, params="gains.json")
+
+
+class _NoQState(NamedTuple):
+    t: jnp.ndarray
+    quat: jnp.ndarray  # not named q or r: estimate 0 cannot be read from it
+
+
+def test_estimate_0_needs_q_or_r_in_the_state_or_an_output_function():
+    """Without Observer(output=...), estimate 0 is read from init's state: a state without q or r is one clear line
+    before anything runs (it was reported as a non-finite estimate at sample 0)."""
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.05, mag_noise_std=0.2)
+    samples, _ = montecarlo.simulate_log(scn, duration=1.0, dt=0.01)
+
+    def init(p, s):
+        st = my_init(p, s)
+        return _NoQState(st.t, st.q)
+
+    def step(p, st, s, dt):
+        new, out = my_step(p, MyState(st.t, st.quat, jnp.zeros(3, st.quat.dtype)), s, dt)
+        return _NoQState(new.t, new.q), {"q": new.q}
+
+    with pytest.raises(
+        ValueError, match=r"estimate 0 is read from init's state, which has no field q .*\['quat', 't'\]"
+    ):
+        jaxatt.filter(Observer(init, step, "noq"), samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
+    # with an output function it runs, and equals the observer that keeps q in its state (no bias: ki = 0)
+    with_output = Observer(init, step, "noq", lambda p, st: {"q": st.quat})
+    p0 = MY_PARAMS._replace(ki=jnp.asarray(0.0))
+    got = jaxatt.filter(with_output, samples.gyr, samples.acc, samples.mag, dt=0.01, params=p0)
+    ref = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=p0)
+    np.testing.assert_array_equal(got.quat, ref.quat)
+
+
+def test_an_extra_output_is_nan_at_estimate_0_without_a_warning_and_warned_when_it_goes_bad_later():
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.05, mag_noise_std=0.2)
+    samples, _ = montecarlo.simulate_log(scn, duration=1.0, dt=0.01)
+
+    def step(p, st, s, dt, bad=False):
+        new, out = my_step(p, st, s, dt)
+        err = jnp.where(bad & (new.t > 0.5), jnp.nan, 0.0) * jnp.ones(3, new.q.dtype)
+        return new, {"q": out.q, "err": err}
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning at all
+        est = jaxatt.filter(
+            Observer(my_init, step, "extra"), samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS
+        )
+    assert np.all(np.isnan(est.outputs["err"][0])) and np.all(est.outputs["err"][1:] == 0.0)
+    bad = Observer(my_init, lambda p, st, s, dt: step(p, st, s, dt, bad=True), "extra_bad")
+    with pytest.warns(UserWarning, match="the estimate is finite but the output err has non-finite values"):
+        jaxatt.filter(bad, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
+
+
 def test_broad_score_of_your_observer_equals_the_numpy_metric(trials):
     score = jaxatt.broad_score(MY_OBSERVER, MY_PARAMS, trials)
     assert set(score.trials) == {t.name for t in trials} and set(score.groups) == {"undisturbed", "disturbed", "all"}
