@@ -204,9 +204,9 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
     """``trials`` as a list, or ValueError (one line naming the trial and field) unless each is a :class:`Trial`
     with a unique name, N >= 2 samples, gyr / acc / mag (N, 3) real without +-inf (gyr and acc with at least one
     finite reading; a trial without magnetometer readings is a 6D trial), quat_true (N, 4) unit
-    quaternions (w, x, y, z) where finite, movement (N,) bool, rate_hz a positive number agreeing with
-    ``samples.t`` (1 %). ``need_scored``: every trial has a scored sample (movement and finite truth), as a fit's
-    loss needs (a trial with none would add a zero error)."""
+    quaternions (w, x, y, z) where finite, movement (N,) bool, ``samples.t`` (N,) finite and strictly increasing
+    seconds, rate_hz a positive number agreeing with its median step (1 %). ``need_scored``: every trial has a
+    scored sample (movement and finite truth), as a fit's loss needs (a trial with none would add a zero error)."""
     if isinstance(trials, Trial):
         raise ValueError(f"{what} must be a list of trials, got one Trial ({trials.name}): pass [trial]")
     trials = list(trials)
@@ -252,15 +252,24 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
             raise ValueError(f"{where}: rate_hz must be a number of Hz, got {tr.rate_hz!r}") from None
         if not (np.isfinite(rate) and rate > 0):
             raise ValueError(f"{where}: rate_hz must be a positive number of Hz, got {tr.rate_hz}")
-        t = np.asarray(s.t, np.float64)
-        if t.shape == (n,) and np.all(np.isfinite(t)):
-            step = float(np.median(np.diff(t)))
-            if not abs(step * rate - 1.0) <= 0.01:
-                raise ValueError(
-                    f"{where}: rate_hz = {rate:g} Hz but samples.t steps by {step:.6g} s ({1 / step:.6g} Hz)"
-                    if step > 0
-                    else f"{where}: samples.t must increase"
-                )
+        try:
+            t = np.asarray(s.t, np.float64) if s.t is not None else None
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: samples.t must be real seconds, got {np.asarray(s.t).dtype}") from None
+        if t is None or t.shape != (n,):
+            got = "None" if t is None else str(list(t.shape))
+            raise ValueError(f"{where}: samples.t must have shape (N,) = ({n},) like gyr, seconds; got {got}")
+        if not np.all(np.isfinite(t)):
+            raise ValueError(f"{where}: samples.t[{int(np.argmin(np.isfinite(t)))}] is not finite")
+        back = np.flatnonzero(np.diff(t) <= 0)
+        if back.size:
+            k = int(back[0])
+            raise ValueError(
+                f"{where}: samples.t must be strictly increasing; t[{k}] = {t[k]:.9g} >= t[{k + 1}] = {t[k + 1]:.9g}"
+            )
+        step = float(np.median(np.diff(t)))
+        if not abs(step * rate - 1.0) <= 0.01:
+            raise ValueError(f"{where}: rate_hz = {rate:g} Hz but samples.t steps by {step:.6g} s ({1 / step:.6g} Hz)")
         if need_scored and not np.any(scored_samples(tr)):
             raise ValueError(
                 f"{where}: no scored sample (movement and finite quat_true); it would add a zero error to the "
