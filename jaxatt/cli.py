@@ -1093,19 +1093,21 @@ def _in_deferring_call(frame) -> bool:
 
 
 def _on_sigint(signum, frame):
-    """Ctrl-C: remember it and raise KeyboardInterrupt where Python runs next (a second Ctrl-C leaves at once).
+    """Ctrl-C (SIGINT) or SIGTERM (``kill``, a batch scheduler): remember it and raise KeyboardInterrupt where Python
+    runs next, so that finished work is saved and no temporary file is left (a second signal leaves at once); the
+    exit status is then 128 + the signal's number (130, 143).
 
     Inside a garbage-collector callback or ``__del__`` the exception would be printed and dropped, and inside an
     atomic file write it would leave a half-written archive object behind, so the signal is sent again 50 ms later
     instead."""
-    if _IMPORTING or (_INTERRUPTED and not _DEFERRED):  # nothing computed yet, or a second Ctrl-C
+    if _IMPORTING or (_INTERRUPTED and not _DEFERRED):  # nothing computed yet, or a second signal
         os.write(2, b"jaxatt: interrupted\n")
-        os._exit(130)
+        os._exit(128 + signum)
     if not _INTERRUPTED:
         _INTERRUPTED.append(signum)
     if _in_deferring_call(frame):
         _DEFERRED.append(signum)
-        threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+        threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
         return
     _DEFERRED.clear()
     raise KeyboardInterrupt
@@ -1231,17 +1233,18 @@ def entry() -> None:
         sys.exit(2)
     if n_cpu is not None:  # every core: the runs of a Monte Carlo chunk are split over the CPU devices
         os.environ["JAX_NUM_CPU_DEVICES"] = str(n_cpu)
-    previous = signal.signal(signal.SIGINT, _on_sigint)
+    previous = {sig: signal.signal(sig, _on_sigint) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         rc = main()
     except KeyboardInterrupt:
         rc = 130
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if _INTERRUPTED or rc == 130:
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
+        os._exit(128 + _INTERRUPTED[0] if _INTERRUPTED else 130)
     sys.exit(rc)
 
 

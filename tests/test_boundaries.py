@@ -570,16 +570,20 @@ def test_resume_with_plot_added_is_refused_before_computing(tmp_path):
     assert not (tmp_path / "p.png").exists()
 
 
-def test_sigint_without_an_earlier_result_writes_the_partial_json(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_sigint_without_an_earlier_result_writes_the_partial_json(tmp_path, sig):
+    """Ctrl-C, or SIGTERM (kill, a batch scheduler's time limit), after the first chunk: the partial result is
+    written, the status is 128 + the signal (130, 143), and no temporary file is left beside the outputs."""
     out = tmp_path / "mc.json"
     p = _cli(*SO3, "--progress", "--json", str(out))
     _wait_for(p, r"runs [1-5]/6")
-    p.send_signal(signal.SIGINT)
+    p.send_signal(sig)
     stdout, err = p.communicate(timeout=120)
-    assert p.returncode == 130 and "Traceback" not in err, err[-800:]
+    assert p.returncode == 128 + sig and "Traceback" not in err, (p.returncode, err[-800:])
     d = json.loads(out.read_text())
     assert d["complete"] is False and 1 <= d["runs_done"] < 6
     assert "rerun with --resume" in stdout
+    assert not list(tmp_path.glob("*.tmp")), sorted(x.name for x in tmp_path.iterdir())
 
 
 def test_sigint_in_an_overwriting_tune_keeps_the_finished_gains_file(tmp_path):
