@@ -638,8 +638,9 @@ def _fit_status(res) -> int:
     return 0
 
 
-#: study settings that follow the evaluation's length, not the gains file (the steady window scales with it)
-_LENGTH_SETTINGS = ("duration", "window_start")
+#: study settings that follow the evaluation's length, not the gains file (the steady window, and the NLIO
+#: studies' metric windows, scale with it)
+_LENGTH_SETTINGS = ("duration", "window_start", "windows")
 
 
 def _evaluation_config(args, gains) -> dict:

@@ -309,6 +309,34 @@ def test_evaluate_runs_the_set_up_the_gains_were_tuned_on(tmp_path, capsys):
     assert err.count("\n") == 0 and "--gains" in err and "no_such_setting" in err
 
 
+def test_evaluate_at_a_short_duration_scales_the_windows_a_gains_file_recorded(tmp_path, capsys):
+    """A gains file of an NLIO study records its set-up's metric windows (0-200 s, 300-500 s); evaluated at
+    --duration 2 they scale with the duration as without --gains (they were kept, and every window metric was NaN:
+    exit 1 "non-finite")."""
+    from jaxatt import studies
+    from jaxatt.fitting import gainsfile
+    from jaxatt.observers import registry
+
+    s = studies.get("nlio-case1").setup()
+    gains = tmp_path / "g.json"
+    config = {"windows": [list(w) for w in s.windows], "duration": s.duration}
+    gainsfile.write(
+        gains,
+        observer=s.entry,
+        params=s.params,
+        gains=registry.get(s.entry).gains,
+        study="nlio-case1",
+        status="done",
+        settings={"config": config},
+    )
+    out = tmp_path / "e.json"
+    argv = ["evaluate", "--experiment", "nlio-case1", "--gains", str(gains), "--runs", "1", "--quiet"]
+    assert cli.main([*argv, "--duration", "2", "--json", str(out)]) == 0, capsys.readouterr().err
+    d = json.loads(out.read_text())
+    assert [w[1:] for w in d["config"]["windows"]] == [[0.0, 0.8], [1.2, 2.0]]
+    assert all(np.all(np.isfinite(m["mean"])) for m in d["metrics"].values())
+
+
 def _write_broad_trial(path, samples, q_true, rate):
     import h5py
 
