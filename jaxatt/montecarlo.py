@@ -86,11 +86,18 @@ def check_count(name: str, value, minimum: int = 0, maximum: Optional[int] = Non
 # A recorded log
 # ------------------------------------------------------------------------------------------------------
 def _check_samples(samples):
+    if not (hasattr(samples, "_fields") and "t" in samples._fields and "gyr" in samples._fields):
+        raise ValueError(
+            "samples must be a jaxatt.types.ImuSample(t, gyr, acc, mag) (or VectorSample) of arrays, got "
+            f"{type(samples).__name__}"
+        )
     g = np.shape(samples.gyr)
     if len(g) != 2 or g[1] != 3:
         raise ValueError(f"samples.gyr must have shape (T, 3), got {g}")
     if np.shape(samples.t) != (g[0],):
-        raise ValueError(f"samples.t must have shape (T,) = ({g[0]},), got {np.shape(samples.t)}")
+        raise ValueError(
+            f"samples.t and samples.gyr must have one row per sample: t has shape {np.shape(samples.t)}, gyr {g}"
+        )
     if isinstance(samples, ImuSample):
         for name in ("acc", "mag"):
             v = getattr(samples, name)
@@ -102,6 +109,21 @@ def _check_samples(samples):
                 raise ValueError(f"samples.{name} must have {g[0]} rows (one per sample), got shape {np.shape(v)}")
     if g[0] < 2:
         raise ValueError("a log needs at least two samples")
+
+
+#: what :class:`jaxatt.engine.Simulated` asks of a scenario (:class:`jaxatt.sim.imu.ImuScenario`)
+SCENARIO_FIELDS = ("r0", "n_channels", "truth_at", "propagate", "sample")
+
+
+def check_scenario(scenario) -> None:
+    """ValueError (one line) unless ``scenario`` is a simulated scenario (e.g. ``jaxatt.api.ahrs_scenario()`` or
+    a study's ``setup().scenario``): an object with :data:`SCENARIO_FIELDS`."""
+    missing = [a for a in SCENARIO_FIELDS if not hasattr(scenario, a)]
+    if missing:
+        raise ValueError(
+            "scenario must be a simulated scenario (jaxatt.api.ahrs_scenario(...), a study's setup().scenario), got "
+            f"{type(scenario).__name__} (it lacks {', '.join(missing)})"
+        )
 
 
 def _pick_out(t, truth, out):
@@ -163,7 +185,13 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
             raise ValueError("timestamps must be finite and strictly increasing")
     else:
         steps = check_dt(dt)
-    return log_runner(observer, hold)(params, samples, steps)
+    try:
+        return log_runner(observer, hold)(params, samples, steps)
+    except (AttributeError, TypeError) as e:  # params or samples of the wrong kind for this observer, found tracing
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"observer {observer.name!r}: init or step failed on these params and samples: {type(e).__name__}: {first}"
+        ) from e
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -359,6 +387,7 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
     Returns (sample pytree of (N+1,)/(N+1, 3) arrays, truth of stacked arrays), in the simulator's precision.
     Holds the whole trajectory: meant for short runs, tests and for feeding :func:`run`.
     """
+    check_scenario(scenario)
     dt = check_dt(dt)
     n_steps = check_step_count(check_duration(duration), dt)
     keys = run_keys(seed, [run_index]) if key is None else jnp.asarray(key)[None]
@@ -455,6 +484,7 @@ def monte_carlo(
     Memory per chunk: the state and accumulators of ``chunk`` runs, one noise block (chunk x 1000 x channels)
     and the decimated traces; never the per-step trajectories.
     """
+    check_scenario(scenario)
     runs = check_count("runs", runs, 1, MAX_RUNS)
     chunk = check_count("chunk", chunk, 1)
     seed = check_seed(seed)

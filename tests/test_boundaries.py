@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxatt
-from jaxatt import cli
+from jaxatt import cli, montecarlo
 
 REPO = Path(__file__).parents[1]
 KEEP = b'{"complete": true, "precious": "an earlier result"}\n'
@@ -386,7 +386,27 @@ API_BAD = [
     (lambda g, a, m: jaxatt.fit("madgwick", None, "nonsense"), r"unknown study 'nonsense'"),
     (lambda g, a, m: jaxatt.fit("madgwick", None, [1, 2]), r"Trial"),
     (lambda g, a, m: jaxatt.broad_score("madgwick", None, "/nonexistent"), r"Trial"),
+    # the lower-level montecarlo functions of the README
+    (lambda g, a, m: montecarlo.simulate_log("rotating", duration=1.0, dt=0.01), r"scenario must be a simulated .*str"),
+    (lambda g, a, m: montecarlo.run(*_madgwick(), None), r"samples must be a jaxatt.types.ImuSample"),
+    (
+        lambda g, a, m: montecarlo.run(_madgwick()[0], {"x": 1.0}, _log(g, a, m)),
+        r"observer 'madgwick': init or step failed on these params and samples: AttributeError",
+    ),
+    (
+        lambda g, a, m: montecarlo.run(*_madgwick(), _log(g, a, m)._replace(gyr=g[:10])),
+        r"samples.t and samples.gyr must have one row per sample: t has shape \(100,\), gyr \(10, 3\)",
+    ),
 ]
+
+
+def _madgwick():
+    e = jaxatt.observers.registry.get("madgwick")
+    return jaxatt.observers.registry.recorded_observer(e), e.default_params()
+
+
+def _log(g, a, m):
+    return jaxatt.ImuSample(np.arange(len(g)) * 0.01, g, a, m)
 
 
 @pytest.mark.parametrize("call, match", API_BAD)
