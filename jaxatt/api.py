@@ -492,6 +492,12 @@ def filter(
 
     samples = ImuSample(jnp.asarray(t_run, dt_), run_input(gyr_a), run_input(acc_a), run_input(mag_a))
     steps = np.diff(t_run)
+    cast = np.asarray(steps, np.dtype(dt_))
+    if not (np.all(np.isfinite(cast)) and np.all(cast > 0)):
+        raise ValueError(
+            f"the sample period ({float(np.min(steps)):.3g} s) is not a positive number in "
+            f"{np.dtype(dt_).name} (it rounds to 0 or overflows): check dt / t, or run in float64"
+        )
     item = {
         "samples": jax.tree_util.tree_map(lambda a: a[None], samples),
         "dt": jnp.asarray(np.concatenate([steps[:1], steps]) if per_step else steps[0], dt_)[None],

@@ -864,13 +864,20 @@ def _import_attr(spec: str, flag: str):
     return getattr(mod, attr)
 
 
+def _check_log_path(path: str) -> None:
+    """UserError unless ``--log`` names a file (checked before the output paths, whose checks assume it)."""
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
+
+
 def _load_any_log(path: str):
     from pathlib import Path
 
     from .data import broad, logs
 
-    if not Path(path).is_file():
-        raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
+    _check_log_path(path)
     if Path(path).suffix.lower() in (".hdf5", ".h5"):
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
@@ -902,6 +909,7 @@ def _observer_and_params(args):
 def _filter(args) -> int:
     from . import api, io
 
+    _check_log_path(args.log)
     out = io.check_output_path(
         args.out, "--out", suffixes=FILTER_OUTPUTS, inputs={"--log": args.log, "--gains": args.gains}
     )

@@ -133,6 +133,7 @@ BAD_INPUT = [
     # filter
     (["filter", "--log", "{d}/missing.csv", "--out", "{d}/keep.csv"], r"--log .*missing\.csv: not found"),
     (["filter", "--log", "{d}/folder", "--out", "{d}/keep.csv"], r"folder"),
+    (["filter", "--log", "{d}", "--out", "{d}/keep.csv"], r"--log .*: not a file"),  # not "--out in the --log folder"
     (["filter", "--log", "{d}/log.csv", "--out", "{d}/folder"], r"--out .*folder: is a folder"),
     (["filter", "--log", "{d}/log.csv", "--out", " "], r"--out: empty path"),
     (["filter", "--log", "{d}/log.csv", "--out", "/proc/est.csv"], r"--out /proc/est\.csv: cannot write"),
@@ -376,6 +377,10 @@ API_BAD = [
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=float("nan")), r"dt must be a finite positive"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.0), r"dt must be a finite positive"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=-0.01), r"dt must be a finite positive"),
+    (
+        lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=1e-300, dtype="float32"),
+        r"sample period \(1e-300 s\) is not a positive number in float32",
+    ),
     (lambda g, a, m: jaxatt.filter("madgwick", [0.0, 0.0, 0.0], a, m, dt=0.01), r"gyr must have shape \(T, 3\)"),
     (lambda g, a, m: jaxatt.filter("madgwick", g[:10], a, m, dt=0.01), r"acc has 100 samples, gyr has 10"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"beta": np.nan}), r"beta"),
