@@ -191,7 +191,7 @@ def _times(t, dt, n: int):
                 t = timestamp_seconds(t)
             elif t.dtype.kind not in "iuf":
                 raise TypeError
-            narrow = t.dtype == np.float32 or t.dtype == np.float16
+            t_dtype = t.dtype
             t = np.asarray(t, np.float64)
         except (TypeError, ValueError):
             raise ValueError(
@@ -202,13 +202,9 @@ def _times(t, dt, n: int):
             raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
         d = np.diff(t)
         if not np.all(np.isfinite(t)) or np.any(d <= 0):
-            hint = ""
-            if narrow and np.all(np.isfinite(t)) and np.max(np.abs(t)) > 1e4:
-                hint = (
-                    f"; float32 timestamps near {np.max(np.abs(t)):.3g} s cannot resolve the sample interval: "
-                    "pass them as float64 or relative to the first"
-                )
-            raise ValueError("t must be finite and strictly increasing (s)" + hint)
+            from .data.logs import narrow_timestamps_hint
+
+            raise ValueError("t must be finite and strictly increasing (s)" + narrow_timestamps_hint(t_dtype, t))
         return t, True
     try:
         if isinstance(dt, (bool, np.bool_)):

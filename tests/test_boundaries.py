@@ -72,6 +72,8 @@ def make_files(d: Path) -> None:
     _write_csv(d / "huge_gyr.csv", t, gyr * 1e300, acc, mag)
     _write_csv(d / "backwards.csv", t[::-1], gyr, acc, mag)
     (d / "no_header.csv").write_text("0,0,0,0\n0.01,0,0,0\n")
+    # float32 Unix times: 1.7e9 s in float32 steps by 128 s, so the 0.01-s samples collide
+    np.savez(d / "unix_float32.npz", t=(1.7e9 + t).astype(np.float32), gyr=gyr, acc=acc, mag=mag)
     (d / "empty.csv").write_text("")
     bad_inf = np.column_stack([t, gyr, acc, mag]).astype(object)
     bad_inf[5, 1] = "inf"
@@ -151,6 +153,7 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/empty.csv", "--out", "{d}/keep.csv"], r"empty\.csv"),
     (["filter", "--log", "{d}/inf.csv", "--out", "{d}/keep.csv"], r"inf"),
     (["filter", "--log", "{d}/backwards.csv", "--out", "{d}/keep.csv"], r"increasing"),
+    (["filter", "--log", "{d}/unix_float32.npz", "--out", "{d}/keep.csv"], r"float32 timestamps near 1\.7e\+09 s"),
     (["filter", "--log", "{d}/trials_no_mag/01_no_mag.hdf5", "--out", "{d}/keep.csv"], r"imu_mag"),
     (["filter", "--log", "{d}/trials_rate0/01_rate0.hdf5", "--out", "{d}/keep.csv"], r"sampling_rate"),
     (["filter", "--log", "{d}/trials_truncated/01_truncated.hdf5", "--out", "{d}/keep.csv"], r"truncated|read"),

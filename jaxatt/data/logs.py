@@ -73,6 +73,17 @@ CSV_COLUMNS = {
 }
 
 
+def narrow_timestamps_hint(dtype, t: np.ndarray) -> str:
+    """ "; float32 timestamps near ... cannot resolve the sample interval: ..." when timestamps of a narrow float
+    type (float32, float16) are large enough to be the reason two of them are equal; else ""."""
+    if dtype not in (np.float32, np.float16) or not np.all(np.isfinite(t)) or np.max(np.abs(t)) <= 1e4:
+        return ""
+    return (
+        f"; {np.dtype(dtype).name} timestamps near {np.max(np.abs(t)):.3g} s cannot resolve the sample interval: "
+        "pass them as float64 or relative to the first"
+    )
+
+
 def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tuple[ImuSample, Optional[np.ndarray]]:
     """Validate a log and return it as float64 numpy arrays.
 
@@ -100,6 +111,7 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
             raise ValueError(f"{source}: {name} must have shape {want}, got {a.shape}")
         return a
 
+    t_dtype = getattr(samples.t, "dtype", None)
     t = arr("t", samples.t, ())
     n = t.shape[0]
     if n < 1:
@@ -110,7 +122,10 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     if np.any(dt <= 0):
         k = int(np.argmax(dt <= 0))
         a, b = float(t[k]), float(t[k + 1])
-        raise ValueError(f"{source}: t must be strictly increasing; t[{k}] = {a!r} >= t[{k + 1}] = {b!r}")
+        raise ValueError(
+            f"{source}: t must be strictly increasing; t[{k}] = {a!r} >= t[{k + 1}] = {b!r}"
+            + narrow_timestamps_hint(t_dtype, t)
+        )
     out = {"t": t}
     for name in ("gyr", "acc", "mag"):
         v = getattr(samples, name)
