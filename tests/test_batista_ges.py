@@ -53,6 +53,13 @@ def test_assumption1_refused_for_parallel_reference():
     with pytest.raises(ValueError, match="Assumption 1"):
         ges.default_params(-3.0 * WE / np.linalg.norm(WE) * 4.5e4 + 1e-6, WE)
     ges.default_params(REF, WE)  # the paper's case is fine
+    # Assumption 1 is about directions: it holds at any scale the gains' arithmetic can carry, and a vector whose
+    # powers underflow or overflow is named (its norm read as 0 or inf before)
+    for scale in ges.VECTOR_MAGNITUDE:
+        ges.default_params(REF * scale / np.max(np.abs(REF)), WE)
+    for bad in (REF * 1e-300, REF * 1e300, np.zeros(3)):
+        with pytest.raises(ValueError, match=r"ref_nav must be finite and non-zero, of magnitude"):
+            ges.default_params(bad, WE)
 
 
 def test_paper_gain_is_literal_q():

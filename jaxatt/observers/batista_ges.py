@@ -260,6 +260,11 @@ def growing_memory_params(
 # ------------------------------------------------------------------------------------------------------
 # Validation at the API boundary (concrete arrays only; called by run/monte_carlo/CLI).
 # ------------------------------------------------------------------------------------------------------
+#: Largest-component range of ``ref_nav`` and ``earth_rate_nav`` (their units): :func:`paper_gain` takes norms of
+#: products of up to four components, which must neither underflow nor overflow in float64.
+VECTOR_MAGNITUDE = (1e-50, 1e50)
+
+
 def check_references(
     ref_nav,
     earth_rate_nav,
@@ -275,8 +280,10 @@ def check_references(
     for name, v in (("ref_nav", m), ("earth_rate_nav", w)):
         if v.shape != (3,):
             raise ValueError(f"{name} must have shape (3,), got {v.shape}")
-        if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
-            raise ValueError(f"{name} must be finite and non-zero, got {v}")
+        if not np.all(np.isfinite(v)) or not VECTOR_MAGNITUDE[0] <= np.max(np.abs(v)) <= VECTOR_MAGNITUDE[1]:
+            lo, hi = VECTOR_MAGNITUDE
+            raise ValueError(f"{name} must be finite and non-zero, of magnitude {lo:g} to {hi:g}, got {v}")
+    m, w = m / np.max(np.abs(m)), w / np.max(np.abs(w))  # directions only: no underflow or overflow below
     s = np.linalg.norm(np.cross(m, w)) / (np.linalg.norm(m) * np.linalg.norm(w))
     if s < min_sin_angle:
         raise ValueError(

@@ -173,6 +173,15 @@ def check_config(cfg) -> None:
             raise ValueError(f"{name} must be a finite number >= 0, got {v}")
     if cfg.hold not in ("zoh", "linear"):
         raise ValueError(f"hold must be 'zoh' or 'linear', got {cfg.hold!r}")
+    ref = np.asarray(cfg.reference_nT, float)
+    if ref.shape != (3,) or not np.all(np.isfinite(ref)):
+        raise ValueError(f"reference must be 3 finite numbers (nT, NED), got {cfg.reference_nT!r}")
+    lo, hi = ges.VECTOR_MAGNITUDE
+    if not lo <= np.max(np.abs(ref)) <= hi:
+        raise ValueError(
+            f"reference must be a non-zero vector of magnitude {lo:g} to {hi:g} nT (the gains use its powers), "
+            f"got {ref.tolist()}"
+        )
 
 
 def comparable(cfg) -> "str | None":
