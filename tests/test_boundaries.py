@@ -262,9 +262,9 @@ BAD_INPUT = [
     (["broad", "--data-dir", "{d}/trials_ok", "--trials", ""], r"no trial named"),
     (["simulate", "--observer", "batista-ges", *MC, "--dt", "1e-300"], r"steps per run"),
     # the reference's square enters the gains: zero, underflowing and overflowing vectors are named by their flag
-    (["simulate", "--observer", "batista-ges", *MC, "--reference=0,0,0"], r"error: reference must be a non-zero vector"),
+    (["simulate", "--observer", "batista-ges", *MC, "--reference=0,0,0"], r"error: reference must be a non-zero"),
     (["simulate", "--observer", "batista-so3", *MC, "--reference=1e-300,0,0"], r"error: reference must be a non-zero"),
-    (["simulate", "--observer", "batista-ges", *MC, "--reference=1e300,1e300,0"], r"error: reference must be a non-zero"),
+    (["simulate", "--observer", "batista-ges", *MC, "--reference=1e300,1,0"], r"error: reference must be a non-zero"),
     (["evaluate", "--experiment", "batista-so3", "--runs", "1", "--duration", "1e300"], r"steps per run"),
     (["excitation", "--scenario", "rotating", "--duration", "1e300"], r"steps per run"),
     (["tune", "--experiment", "batista-so3", "--val-runs", "1" + "0" * 20], r"argument --val-runs: must be <="),
