@@ -147,12 +147,15 @@ def trials_start_from_valid(entry, trials: list) -> list:
 def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
     widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
-    interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no finite reading."""
+    interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no present reading
+    (acc / mag: every row NaN or zero)."""
     with np.errstate(invalid="ignore"):
         notes = []
-        for name, a in (("gyr", gyr), ("acc", acc), ("mag", mag)):
-            if a is not None and not np.isfinite(a).any():
-                notes.append(f"{name} has no finite reading (every row NaN)")
+        if not np.isfinite(gyr).any():
+            notes.append("gyr has no finite reading (every row NaN)")
+        for name, a in (("acc", acc), ("mag", mag)):
+            if a is not None and not _valid_rows(a).any():  # a zero row marks a missing reading, as NaN does
+                notes.append(f"{name} has no present reading (every row NaN or all zero): the filter runs without it")
         g = np.nanmax(np.abs(gyr)) if np.isfinite(gyr).any() else 0.0
         if g > 35.0:
             notes.append(f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s")
@@ -474,6 +477,12 @@ def filter(
         missing = [f for f in entry.needs if {"acc": acc_a, "mag": mag_a}[f] is None]
         if missing:
             raise ValueError(f"observer {name!r} needs {' and '.join(missing)} (arrays of shape (T, 3))")
+        if mag_a is not None and "mag" not in entry.needs:
+            warnings.warn(
+                f"observer {name!r} does not use the magnetometer: mag is ignored (its heading drifts; a 9D "
+                "observer such as 'vqf' or 'robust' uses mag)",
+                stacklevel=2,
+            )
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)

@@ -236,6 +236,9 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         warnings.simplefilter("always")
         est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01)
     assert not [str(w.message) for w in caught if "non-finite" in str(w.message)], name  # every output is finite
+    # a 6D observer given a magnetometer says it ignores it (a user who wanted heading picked the wrong one)
+    ignored = [str(w.message) for w in caught if "does not use the magnetometer" in str(w.message)]
+    assert len(ignored) == int("mag" not in jaxatt.observers.registry.get(name).needs), (name, ignored)
     err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
     assert np.all(np.isfinite(est.quat)), name
     assert err[-500:].mean() < 3.0, (name, err[-500:].mean())
@@ -414,7 +417,8 @@ def _tiny_trial():
         ({"acc": lambda a: a / 9.81}, r"median \|acc\| is 1: is it in g"),
         ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms"),
         ({"t": lambda t: t * 1e6}, r"sample interval is 1e\+04 s: are the timestamps in us"),
-        ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no finite reading"),
+        ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no present reading \(every row NaN or all zero\)"),
+        ({"acc": np.zeros_like}, r"acc has no present reading"),  # a logger's zeros for a sensor it lacks
         (
             {"t": lambda t: np.where(t > 0.3, t + 100.0, t)},
             r"1 sample intervals are longer than 10x .*, the longest 100 s after t = 0.3 s \(sample 30\)",
