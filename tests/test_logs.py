@@ -157,6 +157,23 @@ def test_save_validates_and_suffix(tmp_path):
     assert_same(s, logs.load_log(tmp_path / "UPPER.NPZ"))
 
 
+@pytest.mark.parametrize("sep, decimal", [(";", "."), (";", ","), ("\t", "."), ("\t", ",")])
+def test_csv_separated_by_semicolons_or_tabs_reads_as_the_comma_file(tmp_path, sep, decimal):
+    """Spreadsheets in many locales write ';' (or tabs) between fields and a decimal comma: the same log, written
+    that way, reads back bit for bit (the separator is the header's; missing cells stay NaN)."""
+    s, _ = make_log()
+    p = tmp_path / "x.csv"
+    logs.save_csv(p, s)
+    text = p.read_text()
+    other = tmp_path / "y.csv"
+    other.write_text(text.replace(",", sep).replace(".", decimal))
+    assert_same(s, logs.load_csv(other))
+    spaced = tmp_path / "z.csv"
+    spaced.write_text(text.replace(",", " "))
+    with pytest.raises(ValueError, match=r"required column 't' missing .*separate the columns with commas, semicolons"):
+        logs.load_csv(spaced)
+
+
 def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
     """numpy's C reader (plain numeric files) and the cell-by-cell reader (the fallback) give the same table,
     and a file the fast reader refuses (an empty cell) still loads through the fallback."""

@@ -10,7 +10,9 @@ Time must be finite and strictly increasing. Timestamps may also be dates and ti
 arrays) or ISO 8601 text such as ``2024-05-01 12:00:00.001`` (CSV; pandas writes them so) become seconds since the
 first sample, and ``timedelta64`` durations become seconds, each from its own unit (ms, us, ns, ...).
 
-CSV: one header line naming the columns (order free, extra columns ignored), comma-separated:
+CSV: one header line naming the columns (order free, extra columns ignored), separated by commas, or by semicolons
+or tabs (the header line's separator is the file's; with a semicolon or a tab, a decimal comma such as ``0,25`` is
+read as 0.25):
 ``t, gyr_x, gyr_y, gyr_z`` required; ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of
 three; ``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17 significant digits, so a
 float64 log survives a round trip exactly.
@@ -179,24 +181,34 @@ def _is_number(s: str) -> bool:
     return True
 
 
-def _parse_float(s: str, row: int, col: str, source: str) -> float:
+#: Field separators a CSV log may use; the header line's decides (:func:`_separator`).
+CSV_SEPARATORS = (",", ";", "\t")
+
+
+def _separator(header_line: str) -> str:
+    """The header line's field separator: the one of :data:`CSV_SEPARATORS` that splits it into the most fields
+    (a comma on a tie)."""
+    return max(CSV_SEPARATORS, key=lambda c: len(next(csv.reader([header_line], delimiter=c))))
+
+
+def _parse_float(s: str, row: int, col: str, source: str, decimal_comma: bool = False) -> float:
     s = s.strip()
     if s == "":
         return np.nan
     try:
-        return float(s)
+        return float(s.replace(",", ".") if decimal_comma else s)
     except ValueError:
         raise ValueError(f"{source}: line {row}: column {col!r}: {s!r} is not a number") from None
 
 
-def _read_table_fast(f, columns: list, n_header: int) -> Optional[np.ndarray]:
+def _read_table_fast(f, columns: list, n_header: int, sep: str = ",") -> Optional[np.ndarray]:
     """The data rows' ``columns`` (indices) as a (rows, len(columns)) float array by numpy's C reader, or None
     when the file is not plain numbers with one field per header column on every row (an empty cell, a quoted
-    field, a short or long row, a text column): the checked reader then says where."""
+    field, a short or long row, a text column, a decimal comma): the checked reader then says where."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": handled by the checked reader
-            table = np.loadtxt(f, delimiter=",", ndmin=2, dtype=np.float64, comments=None)
+            table = np.loadtxt(f, delimiter=sep, ndmin=2, dtype=np.float64, comments=None)
     except (ValueError, IndexError):
         return None
     if not table.size or table.shape[1] != n_header:
@@ -204,10 +216,10 @@ def _read_table_fast(f, columns: list, n_header: int) -> Optional[np.ndarray]:
     return table[:, columns]
 
 
-def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
+def _read_table_checked(f, header: list, columns: list, src: str, sep: str = ",") -> np.ndarray:
     """The data rows' ``columns`` cell by cell: empty cells are NaN, anything else that is not a number is an
-    error naming its line and column."""
-    rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    error naming its line and column (with a semicolon or tab separator a decimal comma is a decimal point)."""
+    rows = [r for r in csv.reader(f, delimiter=sep) if r and any(c.strip() for c in r)]
     if not rows:
         raise ValueError(f"{src}: no data rows")
     table = np.empty((len(rows), len(columns)))
@@ -221,7 +233,7 @@ def _read_table_checked(f, header: list, columns: list, src: str) -> np.ndarray:
             table[:, j] = _datetime_seconds(cells, src)
             continue
         for k, c in enumerate(cells):
-            table[k, j] = _parse_float(c, k + 2, header[i], src)
+            table[k, j] = _parse_float(c, k + 2, header[i], src, decimal_comma=sep != ",")
     return table
 
 
@@ -263,7 +275,8 @@ def load_csv(path, *, with_truth: bool = False):
         first = f.readline()
         if not first.strip():
             raise ValueError(f"{src}: empty file (a header line is required)")
-        header = [h.strip() for h in next(csv.reader([first]))]
+        sep = _separator(first)
+        header = [h.strip() for h in next(csv.reader([first], delimiter=sep))]
         if any(header) and all(_is_number(h) for h in header if h):
             raise ValueError(
                 f"{src}: the first line must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
@@ -273,7 +286,8 @@ def load_csv(path, *, with_truth: bool = False):
         idx = {h: i for i, h in enumerate(header)}
         for c in CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]:
             if c not in idx:
-                raise ValueError(f"{src}: required column {c!r} missing (header: {header})")
+                hint = " (separate the columns with commas, semicolons or tabs)" if len(header) == 1 else ""
+                raise ValueError(f"{src}: required column {c!r} missing (header: {header}){hint}")
         groups = {}
         for name, cols in CSV_COLUMNS.items():
             present = [c in idx for c in cols]
@@ -285,10 +299,10 @@ def load_csv(path, *, with_truth: bool = False):
         names = [c for cols in groups.values() for c in cols]
         columns = [idx[c] for c in names]
         body = f.tell()
-        table = _read_table_fast(f, columns, len(header))
+        table = _read_table_fast(f, columns, len(header), sep)
         if table is None:
             f.seek(body)
-            table = _read_table_checked(f, header, columns, src)
+            table = _read_table_checked(f, header, columns, src, sep)
     at = {c: j for j, c in enumerate(names)}
     data = {}
     for name, cols in groups.items():
