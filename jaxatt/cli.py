@@ -202,7 +202,12 @@ def _parser() -> argparse.ArgumentParser:
         help="navigation frame of the written quaternions (default ENU): a registered observer's estimate is "
         "converted to it; your own observer's (module:attr) is written as it is and only labelled with it",
     )
-    fp.add_argument("--dt", type=_positive, default=None, help="sample period, s (default: the log's timestamps)")
+    fp.add_argument(
+        "--dt",
+        type=_positive,
+        default=None,
+        help="sample period, s (default: the log's timestamps; a log without t needs it)",
+    )
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
     fp.add_argument(
         "--offline",
@@ -872,7 +877,8 @@ def _check_log_path(path: str) -> None:
         raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
 
 
-def _load_any_log(path: str):
+def _load_any_log(path: str, dt: Optional[float] = None):
+    """(samples, rate in Hz or None) of a CSV / NPZ log or a BROAD trial; ``dt`` (s) times a log without ``t``."""
     from pathlib import Path
 
     from .data import broad, logs
@@ -881,7 +887,7 @@ def _load_any_log(path: str):
     if Path(path).suffix.lower() in (".hdf5", ".h5"):
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
-    return logs.load_log(path), None
+    return logs.load_log(path, dt=dt), None
 
 
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
@@ -917,7 +923,7 @@ def _filter(args) -> int:
     observer, params = _observer_and_params(args)
     from .progress import Heartbeat
 
-    samples, rate = _load_any_log(args.log)
+    samples, rate = _load_any_log(args.log, args.dt)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
     if args.dt is not None and len(samples.t) > 1:
         d = np.diff(np.asarray(samples.t, float))

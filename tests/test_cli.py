@@ -157,6 +157,19 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     out4 = tmp_path / "est_dt.csv"
     assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--dt", "0.02", "--out", str(out4)]) == 0
     assert "jaxatt: warning: --dt 0.02 s replaces the log's timestamps" in capsys.readouterr().err
+    # a log without a t column: --dt times it (t = k dt), the same estimates as the API given dt; without --dt the
+    # missing column is named with the way out
+    no_t = tmp_path / "no_t.csv"
+    no_t.write_text("\n".join(line.split(",", 1)[1] for line in log.read_text().splitlines()) + "\n")
+    out5 = tmp_path / "est_no_t.csv"
+    assert cli.main(["filter", "--log", str(no_t), "--observer", "mahony", "--dt", "0.01", "--out", str(out5)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    got = np.genfromtxt(out5, delimiter=",", names=True)
+    np.testing.assert_array_equal(got["t"], np.arange(len(samples.t)) * 0.01)
+    by_dt = jaxatt.filter("mahony", samples.gyr, samples.acc, samples.mag, dt=0.01)
+    np.testing.assert_allclose(np.column_stack([got[c] for c in ("qw", "qx", "qy", "qz")]), by_dt.quat, atol=1e-15)
+    assert cli.main(["filter", "--log", str(no_t), "--observer", "mahony", "--out", str(out5)]) == 2
+    assert "required column 't' missing" in capsys.readouterr().err
     # --out .npz: the same columns as arrays
     out3 = tmp_path / "est.npz"
     assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", str(out3)]) == 0

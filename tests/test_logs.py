@@ -174,6 +174,32 @@ def test_csv_separated_by_semicolons_or_tabs_reads_as_the_comma_file(tmp_path, s
         logs.load_csv(spaced)
 
 
+@pytest.mark.parametrize("suffix", [".csv", ".npz"])
+def test_a_log_without_timestamps_is_timed_by_dt(tmp_path, suffix):
+    """Fixed-rate loggers often write no time: with dt the log reads as t = 0, dt, 2 dt, ...; without it the
+    missing t is named with the way out; a log that has t keeps it (dt is the caller's to apply)."""
+    s, q = make_log()
+    p = tmp_path / f"x{suffix}"
+    logs.save_log(p, s, q)
+    if suffix == ".csv":
+        p.write_text("\n".join(line.split(",", 1)[1] for line in p.read_text().splitlines()) + "\n")
+    else:
+        with np.load(p) as z:
+            arrays = {k: z[k] for k in z.files if k != "t"}
+        np.savez(p, **arrays)
+    back, q_back = logs.load_log(p, with_truth=True, dt=0.005)
+    np.testing.assert_array_equal(back.t, np.arange(len(s.t)) * 0.005)
+    assert_same(s._replace(t=back.t), back)
+    np.testing.assert_array_equal(q_back, q)
+    with pytest.raises(ValueError, match=r"required (column|array) 't' missing .*give the sample period"):
+        logs.load_log(p)
+    for bad in (0.0, -1.0, float("nan"), "x"):
+        with pytest.raises(ValueError, match="dt must be a"):
+            logs.load_log(p, dt=bad)
+    logs.save_log(p, s)
+    assert_same(s, logs.load_log(p, dt=0.005))
+
+
 def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
     """numpy's C reader (plain numeric files) and the cell-by-cell reader (the fallback) give the same table,
     and a file the fast reader refuses (an empty cell) still loads through the fallback."""

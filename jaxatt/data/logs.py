@@ -12,13 +12,13 @@ first sample, and ``timedelta64`` durations become seconds, each from its own un
 
 CSV: one header line naming the columns (order free, extra columns ignored), separated by commas, or by semicolons
 or tabs (the header line's separator is the file's; with a semicolon or a tab, a decimal comma such as ``0,25`` is
-read as 0.25):
-``t, gyr_x, gyr_y, gyr_z`` required; ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of
-three; ``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17 significant digits, so a
-float64 log survives a round trip exactly.
+read as 0.25): ``t, gyr_x, gyr_y, gyr_z`` required (``t`` may be left out when the sample period is given:
+``dt=``, ``--dt``); ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of three;
+``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17 significant digits, so a float64 log
+survives a round trip exactly.
 
-NPZ: arrays ``t`` (N,), ``gyr`` (N, 3), optional ``acc`` (N, 3), ``mag`` (N, 3), ``quat_true`` (N, 4). Loaded
-without pickle.
+NPZ: arrays ``t`` (N,) (or ``dt=`` as for CSV), ``gyr`` (N, 3), optional ``acc`` (N, 3), ``mag`` (N, 3),
+``quat_true`` (N, 4). Loaded without pickle.
 """
 
 from __future__ import annotations
@@ -264,11 +264,27 @@ def _datetime_seconds(cells: list, src: str) -> np.ndarray:
     return timestamp_seconds(out)
 
 
-def load_csv(path, *, with_truth: bool = False):
+def _uniform_times(n: int, dt: Optional[float], src: str) -> np.ndarray:
+    """t = 0, dt, 2 dt, ... (s) for a log without timestamps; ``dt`` must be a finite positive number."""
+    try:
+        step = float(dt)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{src}: dt must be a number of seconds, got {dt!r}") from None
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"{src}: dt must be a finite positive number of seconds, got {dt!r}")
+    return np.arange(n) * step
+
+
+_NO_TIME_HINT = " (or give the sample period: dt= / --dt)"
+
+
+def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
     """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None)).
 
-    Plain numeric files go through numpy's C reader; a file with empty cells (read as NaN) or anything unusual
-    is read cell by cell, and a cell that is not a number is refused with its line and column."""
+    ``dt`` (s): the sample period of a log without a ``t`` column (t = 0, dt, 2 dt, ...); a ``t`` column, when
+    there is one, is read and ``dt`` is not used. Plain numeric files go through numpy's C reader; a file with
+    empty cells (read as NaN) or anything unusual is read cell by cell, and a cell that is not a number is
+    refused with its line and column."""
     path = Path(path)
     src = str(path)
     with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
@@ -284,9 +300,13 @@ def load_csv(path, *, with_truth: bool = False):
         if len(set(header)) != len(header):
             raise ValueError(f"{src}: duplicate column names in the header: {header}")
         idx = {h: i for i, h in enumerate(header)}
-        for c in CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]:
+        required = CSV_COLUMNS["gyr"] if dt is not None else CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]
+        for c in required:
             if c not in idx:
-                hint = " (separate the columns with commas, semicolons or tabs)" if len(header) == 1 else ""
+                if len(header) == 1:
+                    hint = " (separate the columns with commas, semicolons or tabs)"
+                else:
+                    hint = _NO_TIME_HINT if c == "t" else ""
                 raise ValueError(f"{src}: required column {c!r} missing (header: {header}){hint}")
         groups = {}
         for name, cols in CSV_COLUMNS.items():
@@ -308,6 +328,8 @@ def load_csv(path, *, with_truth: bool = False):
     for name, cols in groups.items():
         a = table[:, [at[c] for c in cols]]
         data[name] = a[:, 0] if name == "t" else a
+    if "t" not in data:
+        data["t"] = _uniform_times(len(table), dt, src)
     samples, q = check_log(
         ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")), data.get("quat_true"), source=src
     )
@@ -335,8 +357,10 @@ def save_csv(path, samples: ImuSample, quat_true=None) -> None:
 # ------------------------------------------------------------------------------------------------------------
 # NPZ
 # ------------------------------------------------------------------------------------------------------------
-def load_npz(path, *, with_truth: bool = False):
-    """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q))."""
+def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None):
+    """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q)).
+
+    ``dt`` (s): the sample period of a log without a ``t`` array (t = 0, dt, 2 dt, ...); not used when it has one."""
     src = str(path)
     try:
         z = np.load(path, allow_pickle=False)
@@ -347,10 +371,13 @@ def load_npz(path, *, with_truth: bool = False):
             keys = set(z.files)
     except (ValueError, zipfile.BadZipFile) as e:  # not an NPZ, pickled (object) arrays, a damaged file
         raise ValueError(f"{src}: cannot read it as an NPZ of numeric arrays ({e})") from None
-    for k in ("t", "gyr"):
+    for k in ("gyr",) if dt is not None else ("t", "gyr"):
         if k not in keys:
-            raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)})")
+            hint = _NO_TIME_HINT if k == "t" else ""
+            raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)}){hint}")
     get = arrays.get
+    if "t" not in arrays:
+        arrays["t"] = _uniform_times(len(np.atleast_1d(arrays["gyr"])), dt, src)
     samples, q = check_log(ImuSample(get("t"), get("gyr"), get("acc"), get("mag")), get("quat_true"), source=src)
     return (samples, q) if with_truth else samples
 
@@ -379,18 +406,19 @@ def _kind(path) -> str:
     raise ValueError(f"{path}: unknown log format {suf!r} (use .csv or .npz)")
 
 
-def load_log(path, *, with_truth: bool = False):
+def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None):
     """Read a .csv or .npz log (see the module docstring for columns, units and frames).
 
     Returns ImuSample(t (N,), gyr (N, 3), acc (N, 3) or None, mag (N, 3) or None) of float64 numpy arrays, or
-    (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. Raises ValueError on wrong shapes,
-    missing columns, non-numeric fields, non-finite or non-increasing time.
+    (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. ``dt`` (s): the sample period of a log with
+    no timestamps (t = 0, dt, 2 dt, ...; a log's own ``t`` is read instead when it has one). Raises ValueError
+    on wrong shapes, missing columns, non-numeric fields, non-finite or non-increasing time.
     """
     kind = _kind(path)
     if not Path(path).is_file():
         raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
     try:
-        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth)
+        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt)
     except (OSError, UnicodeDecodeError, EOFError) as e:
         raise ValueError(f"log {path}: cannot read it ({e})") from None
 
