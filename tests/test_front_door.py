@@ -455,7 +455,8 @@ def test_a_degenerate_first_sample_still_starts_on_so3():
     and the inclination (the only thing a dead magnetometer leaves observable) is right."""
     n = 50
     g, a = np.zeros((n, 3)), np.tile([0.0, 3.0, 9.3], (n, 1))
-    est = jaxatt.filter("nlo", g, a, np.zeros((n, 3)), dt=0.01)
+    with pytest.warns(UserWarning, match="mag has no present reading"):
+        est = jaxatt.filter("nlo", g, a, np.zeros((n, 3)), dt=0.01)
     np.testing.assert_allclose(np.linalg.norm(est.quat, axis=-1), 1.0, atol=1e-9)
     np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
 
@@ -572,6 +573,23 @@ def test_weakly_typed_gains_reuse_the_compiled_monte_carlo():
     np.testing.assert_array_equal(weak.per_run["mean_angle_error_deg"], typed.per_run["mean_angle_error_deg"])
 
 
+def test_padded_lengths_are_whole_blocks_few_per_octave_and_not_much_longer():
+    """api._run_length: never shorter; beyond one noise block a whole number of blocks (the compiled scan then holds
+    one copy of the step, not a second one for a partial block); at most 4 lengths per octave (+1 for the
+    octave's first length, +1 where the block rounding starts) and at most 25 % longer than the recording
+    rounded up by a block."""
+    block = engine.BLOCK
+    ns = np.arange(1, 70_000)
+    lengths = np.array([jaxatt.api._run_length(int(n)) for n in ns])
+    assert np.all(lengths >= ns)
+    beyond = ns - 1 > block
+    assert np.all((lengths[beyond] - 1) % block == 0)
+    assert np.all(lengths <= 1.25 * (ns + block))
+    for k in range(9, 16):
+        octave = lengths[(ns >= 2**k) & (ns < 2 ** (k + 1))]
+        assert len(np.unique(octave)) <= jaxatt.api.LENGTHS_PER_OCTAVE + 2, (k, np.unique(octave))
+
+
 def test_recordings_of_nearby_lengths_share_one_compiled_filter():
     """jaxatt.filter scans a recording padded to a length shared with its neighbours (api._run_length): the
     estimates of the first 3900 samples alone equal the first 3900 of 4001 (a causal scan, the padding
@@ -581,8 +599,8 @@ def test_recordings_of_nearby_lengths_share_one_compiled_filter():
     samples, _ = montecarlo.simulate_log(scn, duration=40.0, dt=0.01, seed=4)  # the length of the test above
     g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
     n, short = 4001, 3900
-    assert jaxatt.api._run_length(n) == jaxatt.api._run_length(short) == 4096
-    scan = _filter_scan("robust", 4096)
+    assert jaxatt.api._run_length(n) == jaxatt.api._run_length(short) == 4001
+    scan = _filter_scan("robust", 4001)
     full = jaxatt.filter("robust", g[:n], a[:n], m[:n], dt=0.01)
     size = scan._cache_size()
     assert size >= 1

@@ -128,7 +128,7 @@ def test_registry_entries_and_filter_frames(batch):
         assert e.gain("tau_acc").tuned
     assert registry.get("vqf").gain("tau_mag").tuned and registry.get("vqf-6d").needs == ("acc",)
     # jaxatt.filter gives the package's sensor-to-ENU quaternion (the first 4000 samples of trial 0: padded to
-    # 4096, the length of tests/test_front_door.py's 40-s log, so the two tests share one compiled 9D filter)
+    # 4001, the length of tests/test_front_door.py's 40-s log, so the two tests share one compiled 9D filter)
     n = 4000
     gyr, acc, mag = (np.asarray(x[0, :n]) for x in (s.gyr, s.acc, s.mag))
     est = jaxatt.filter("vqf", gyr, acc, mag, dt=dt, params=vqf.default_params(ts0=dt))
