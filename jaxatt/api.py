@@ -113,19 +113,17 @@ def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray]
     """(acc, mag) for a registered observer that sets its start and references up from the first sample (an
     entry with ``setup``: TRIAD and the field and gravity references): a missing acc / mag reading in row 0 is
     replaced by that sensor's first present reading (row 0 only feeds ``init`` on hold "next"; other rows stay
-    missing). A sensor with no present reading at all is left as it is (the observer's own handling: a dead
-    magnetometer leaves the inclination)."""
+    missing). A sensor with no present reading at all gets a zero row 0 (missing by the same convention, and no
+    NaN in the set-up: its degenerate TRIAD keeps the inclination, the observer's own handling of a dead
+    magnetometer)."""
     if entry is None or entry.setup is None:
         return acc, mag
     out: List[Optional[np.ndarray]] = []
     for a in (acc, mag):
         if a is not None and not _valid_rows(a[:1])[0]:
             ok = _valid_rows(a)
-            if not ok.any():
-                out.append(a)
-                continue
             a = a.copy()
-            a[0] = a[int(np.argmax(ok))]
+            a[0] = a[int(np.argmax(ok))] if ok.any() else 0.0
         out.append(a)
     return out[0], out[1]
 
@@ -446,7 +444,9 @@ def filter(
             ``step(params, state, sample, dt)``, and its output carries the estimate as ``q`` (w, x, y, z) or
             ``r`` (3x3).
         gyr, acc, mag: (T, 3) sensor frame; rad/s, m/s^2 (specific force), any field unit. NaN marks a missing
-            reading; acc / mag may be None when the observer does not need them. A registered observer set up
+            reading; acc / mag may be None when the observer does not need them, and mag None (a 6-axis
+            recording) runs a registered 9D observer without a magnetometer (inclination only, with a warning),
+            as a magnetometer whose every row is NaN. A registered observer set up
             from the first sample (start and references: mekf, nlo, nlio, complementary, ...) takes a sensor's
             first present reading when row 0 lacks it.
         dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing, or numpy
@@ -488,9 +488,15 @@ def filter(
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     if entry is not None:
-        missing = [f for f in entry.needs if {"acc": acc_a, "mag": mag_a}[f] is None]
-        if missing:
-            raise ValueError(f"observer {name!r} needs {' and '.join(missing)} (arrays of shape (T, 3))")
+        if "acc" in entry.needs and acc_a is None:
+            raise ValueError(f"observer {name!r} needs acc (an array of shape (T, 3), m/s^2)")
+        if "mag" in entry.needs and mag_a is None:  # as a magnetometer with no reading: inclination only
+            warnings.warn(
+                f"no magnetometer given: observer {name!r} runs without one (inclination only: its heading is not "
+                "observable and drifts with the gyro)",
+                stacklevel=2,
+            )
+            mag_a = np.full(gyr_a.shape, np.nan, gyr_a.dtype)
         if mag_a is not None and "mag" not in entry.needs:
             warnings.warn(
                 f"observer {name!r} does not use the magnetometer: mag is ignored (its heading drifts; a 9D "

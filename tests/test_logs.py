@@ -84,6 +84,35 @@ def test_csv_errors(tmp_path):
     bad("t,t,gyr_x,gyr_y,gyr_z\n0,0,1,2,3\n", "duplicate")
 
 
+def test_csv_as_loggers_and_spreadsheets_write_it(tmp_path):
+    """Comment lines above the header are skipped and R's NA / N/A / null cells are missing readings (the file
+    reads as the plain one); a column named nearly as one of the format's is named in the error or a warning
+    with the name to give it, a nameless first column (a pandas index) is said to be one."""
+    p = tmp_path / "x.csv"
+    plain = "t,gyr_x,gyr_y,gyr_z,mag_x,mag_y,mag_z\n0,1,2,3,4,5,nan\n0.1,1,nan,3,nan,5,6\n"
+    p.write_text(plain)
+    want = logs.load_log(p)
+    p.write_text(
+        "# logger v1\n# device: phone\n" + plain.replace(",nan,3,nan,", ",NA,3,null,").replace("5,nan", "5,N/A")
+    )
+    assert_same(want, logs.load_log(p))
+
+    def said(header, match):
+        p.write_text(header + "\n" + ",".join(["0.5"] * (header.count(",") + 1)) + "\n")
+        with pytest.raises(ValueError, match=match):
+            logs.load_log(p)
+
+    said("time,gyr_x,gyr_y,gyr_z", r"required column 't' missing .*; 'time' looks like it: name it 't'$")
+    said("T,GYR_X,GYR_Y,GYR_Z", r"'T' looks like it: name it 't'")
+    said("t [s],gyr_x [rad/s],gyr_y [rad/s],gyr_z [rad/s]", r"'t \[s\]' looks like it: name it 't'")
+    said("t,gyro_x,gyro_y,gyro_z", r"required column 'gyr_x' missing .*'gyro_x' looks like it: name it 'gyr_x'")
+    said("t,gx,gy,gz", r"'gyr_x' missing .*; the columns read are t, gyr_x, gyr_y, gyr_z and the groups")
+    said(",gyr_x,gyr_y,gyr_z", r"the first column has no name: if it holds the times, name it 't'")
+    p.write_text("t,gyr_x,gyr_y,gyr_z,magn_x,magn_y,magn_z\n0,1,2,3,4,5,6\n")
+    with pytest.warns(UserWarning, match=r"columns \['magn_x', 'magn_y', 'magn_z'\] are not read: the mag columns are"):
+        assert logs.load_log(p).mag is None
+
+
 def test_npz_errors(tmp_path):
     p = tmp_path / "bad.npz"
     np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 2)))

@@ -5,17 +5,19 @@ force in m/s^2; ``mag`` magnetic field in the user's unit (uT, nT, gauss: keep i
 parameters); all vectors in the sensor (body) frame. Optional ``quat_true``: ground-truth orientation, unit
 quaternion (w, x, y, z), sensor-to-reference (e.g. ENU), NaN where unknown.
 
-A missing reading is NaN (an empty CSV field reads as NaN); every observer documents what it does with one.
+A missing reading is NaN (an empty CSV field, ``nan``, ``NA``, ``N/A`` or ``null`` reads as NaN); every observer
+documents what it does with one.
 Time must be finite and strictly increasing. Timestamps may also be dates and times: numpy ``datetime64`` (NPZ,
 arrays) or ISO 8601 text such as ``2024-05-01 12:00:00.001`` (CSV; pandas writes them so) become seconds since the
 first sample, and ``timedelta64`` durations become seconds, each from its own unit (ms, us, ns, ...).
 
-CSV: one header line naming the columns (order free, extra columns ignored), separated by commas, or by semicolons
-or tabs (the header line's separator is the file's; with a semicolon or a tab, a decimal comma such as ``0,25`` is
-read as 0.25): ``t, gyr_x, gyr_y, gyr_z`` required (``t`` may be left out when the sample period is given:
-``dt=``, ``--dt``); ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z`` optional as groups of three;
-``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17 significant digits, so a float64 log
-survives a round trip exactly.
+CSV: one header line (comment lines starting with ``#`` may precede it) naming the columns (order free, extra
+columns ignored; a column named nearly as one of the format's, ``magn_x`` or ``ACC_X``, is warned about),
+separated by commas, or by semicolons or tabs (the header line's separator is the file's; with a semicolon or a
+tab, a decimal comma such as ``0,25`` is read as 0.25): ``t, gyr_x, gyr_y, gyr_z`` required (``t`` may be left
+out when the sample period is given: ``dt=``, ``--dt``); ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z``
+optional as groups of three; ``quat_w, quat_x, quat_y, quat_z`` optional. Numbers are written with 17
+significant digits, so a float64 log survives a round trip exactly.
 
 NPZ: arrays ``t`` (N,) (or ``dt=`` as for CSV), ``gyr`` (N, 3), optional ``acc`` (N, 3), ``mag`` (N, 3),
 ``quat_true`` (N, 4). Loaded without pickle.
@@ -24,6 +26,8 @@ NPZ: arrays ``t`` (N,) (or ``dt=`` as for CSV), ``gyr`` (N, 3), optional ``acc``
 from __future__ import annotations
 
 import csv
+import difflib
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -73,6 +77,25 @@ CSV_COLUMNS = {
     "mag": ("mag_x", "mag_y", "mag_z"),
     "quat_true": ("quat_w", "quat_x", "quat_y", "quat_z"),
 }
+
+
+#: Other names of the time column that loggers write (compared in lower case, a unit such as " [s]" dropped).
+TIME_ALIASES = ("time", "timestamp", "times", "time_s", "timestamp_s", "seconds", "sec", "elapsed")
+
+
+def _lookalikes(want: str, header: list) -> list:
+    """Header names that look like the format's column ``want`` but are not it: the same name in another case or
+    with a unit attached (``ACC_X``, ``acc_x [m/s^2]``), a time alias for ``t``, or a close spelling (``magn_x``)."""
+    names = {c for cols in CSV_COLUMNS.values() for c in cols}
+    found = []
+    for h in header:
+        if h in names or not h:
+            continue
+        bare = re.split(r"[\s\[(]", h.strip().lower(), maxsplit=1)[0]
+        close = difflib.SequenceMatcher(None, want, bare).ratio() >= 0.8
+        if bare == want or close or (want == "t" and bare in TIME_ALIASES):
+            found.append(h)
+    return found
 
 
 def narrow_timestamps_hint(dtype, t: np.ndarray) -> str:
@@ -193,7 +216,7 @@ def _separator(header_line: str) -> str:
 
 def _parse_float(s: str, row: int, col: str, source: str, decimal_comma: bool = False) -> float:
     s = s.strip()
-    if s == "":
+    if s == "" or s.lower() in MISSING_CELLS:
         return np.nan
     try:
         return float(s.replace(",", ".") if decimal_comma else s)
@@ -276,6 +299,9 @@ def _uniform_times(n: int, dt: Optional[float], src: str) -> np.ndarray:
 
 
 _NO_TIME_HINT = " (or give the sample period: dt= / --dt)"
+_COLUMNS_READ = "; the columns read are t, gyr_x, gyr_y, gyr_z and the groups acc_*, mag_*, quat_* (x, y, z; w first)"
+#: Cells read as a missing reading besides an empty one and nan (R's NA, spreadsheets' N/A, JSON's null).
+MISSING_CELLS = frozenset({"na", "n/a", "null", "none"})
 
 
 def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
@@ -289,6 +315,8 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
     src = str(path)
     with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
         first = f.readline()
+        while first.startswith("#"):  # a logger's comment lines above the header
+            first = f.readline()
         if not first.strip():
             raise ValueError(f"{src}: empty file (a header line is required)")
         sep = _separator(first)
@@ -303,10 +331,15 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
         required = CSV_COLUMNS["gyr"] if dt is not None else CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]
         for c in required:
             if c not in idx:
+                looks = _lookalikes(c, header)
                 if len(header) == 1:
                     hint = " (separate the columns with commas, semicolons or tabs)"
+                elif looks:
+                    hint = f"; {looks[0]!r} looks like it: name it {c!r}"
+                elif c == "t" and header[0] == "":
+                    hint = "; the first column has no name: if it holds the times, name it 't'" + _NO_TIME_HINT
                 else:
-                    hint = _NO_TIME_HINT if c == "t" else ""
+                    hint = (_NO_TIME_HINT if c == "t" else "") + _COLUMNS_READ
                 raise ValueError(f"{src}: required column {c!r} missing (header: {header}){hint}")
         groups = {}
         for name, cols in CSV_COLUMNS.items():
@@ -316,6 +349,13 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
                 raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
             if all(present):
                 groups[name] = cols
+            elif name != "t":
+                looks = sorted({h for c in cols for h in _lookalikes(c, header)}, key=header.index)
+                if looks:
+                    warnings.warn(
+                        f"{src}: columns {looks} are not read: the {name} columns are named {', '.join(cols)}",
+                        stacklevel=3,
+                    )
         names = [c for cols in groups.values() for c in cols]
         columns = [idx[c] for c in names]
         body = f.tell()
