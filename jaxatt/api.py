@@ -165,7 +165,10 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
         step = float(np.median(d))
         if step > 1.0:
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
-            notes.append(f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s")
+            notes.append(
+                f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
+                "(convert t to seconds, or give the sample period: dt= / --dt)"
+            )
         gaps = d > 10.0 * step
         if gaps.any():
             k = int(np.argmax(d))
@@ -804,6 +807,12 @@ def monte_carlo(
     from . import montecarlo as mc
 
     dt_ = compute_dtype(dtype=dtype) if dtype is not None else np.dtype(jnp.result_type(float))
+    if isinstance(observer, (str, registry.Entry)) and not registry.get(observer).recorded:
+        study = registry.get(observer).name
+        raise ValueError(
+            f"observer {study!r} runs on its paper's scenario, not the AHRS one: `jaxatt reproduce {study}` / "
+            f"`jaxatt simulate --observer {study}`, or jaxatt.studies.get({study!r}) from Python"
+        )
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

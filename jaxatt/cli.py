@@ -229,7 +229,12 @@ def _parser() -> argparse.ArgumentParser:
     _mc_flags(rp)
 
     sp = sub.add_parser("simulate", help="run an observer on a scenario you define with flags")
-    sp.add_argument("--observer", choices=SIMULATE_OBSERVERS, required=True)
+    sp.add_argument(
+        "--observer",
+        choices=SIMULATE_OBSERVERS,
+        required=True,
+        help="a paper's observer on its scenario (the AHRS filters' Monte Carlo: jaxatt.monte_carlo in Python)",
+    )
     g = sp.add_argument_group("batista-ges / batista-so3 (Section IV / 4 platform)")
     g.add_argument("--trajectory", choices=["slow", "aggressive"], default=None)
     g.add_argument("--rate-scale", type=_nonneg, default=None, help="multiplies the angular-velocity profile")

@@ -282,8 +282,10 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
         st, res, out0 = jax.eval_shape(init_and_step, p, sample0, u)
     except Exception as e:  # noqa: BLE001 - the user's code failed: one line, the traceback stays in __cause__
         first = (str(e).strip().splitlines() or [""])[0]
+        structured = hasattr(params, "_fields") or isinstance(params, (dict, list, tuple))
+        given = "" if structured else f" (params is a {type(params).__name__}: pass the params your observer reads)"
         raise ValueError(
-            f"observer {name!r}: init or step failed on these params and a sample: {type(e).__name__}: {first}"
+            f"observer {name!r}: init or step failed on these params and a sample: {type(e).__name__}: {first}{given}"
         ) from e
     if not (isinstance(res, (tuple, list)) and not hasattr(res, "_fields") and len(res) == 2):
         got = "None" if res is None else f"{type(res).__name__}"

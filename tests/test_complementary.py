@@ -356,3 +356,19 @@ def test_bad_inputs_raise_clear_errors(rotating):
         S.make_scenario("rotating", rate=3.0)
     with pytest.raises(ValueError, match="dt"):
         S.simulate_vectors(S.constant_reference(), 1.0, -0.1)
+
+
+def test_study_notes_say_the_scenario_whole_and_when_every_run_is_the_same():
+    """The report's scenario line is the scenario's first sentence, not a line cut mid-sentence; a noise-free
+    set-up (the default) says that every run is the same, a noisy one does not."""
+    from jaxatt import studies
+
+    study = studies.get("complementary")
+    for name in S.SCENARIOS:
+        line = study.notes(study.config(scenario=name))[0]
+        assert line.endswith(".") and line.count("``") % 2 == 0 and line.count("(") == line.count(")"), line
+    quiet = study.notes(study.config(scenario="rotating"))
+    assert quiet[0].endswith("(sin tilt, 0, cos tilt).") and "rate_deg_s" in quiet[0]
+    assert any(n.startswith("noise-free") for n in quiet)
+    noisy = study.notes(study.config(scenario="rotating", gyro_noise_std=1e-3))
+    assert not any(n.startswith("noise-free") for n in noisy)

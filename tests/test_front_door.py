@@ -257,6 +257,8 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.filter("robust", g[:, :2], a, m, dt=0.01), "gyr"),
         (lambda g, a, m: jaxatt.filter("robust", g, a[:-1], m, dt=0.01), "acc"),
         (lambda g, a, m: jaxatt.filter("robust", g, None, m, dt=0.01), "needs acc"),
+        (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params=1.0), "params is a float: pass the"),
+        (lambda g, a, m: jaxatt.monte_carlo("batista-ges", runs=1, duration=1.0), "jaxatt reproduce batista-ges"),
         (lambda g, a, m: jaxatt.filter("nope", g, a, m, dt=0.01), "unknown observer"),
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01), "params are required"),
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params="g.json"), "read_params\\(path, base="),
@@ -415,7 +417,7 @@ def _tiny_trial():
     [
         ({"gyr": np.rad2deg}, r"gyr reaches .* is it in deg/s"),
         ({"acc": lambda a: a / 9.81}, r"median \|acc\| is 1: is it in g"),
-        ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms"),
+        ({"t": lambda t: t * 1000}, r"sample interval is 10 s: are the timestamps in ms\? .*dt= / --dt"),
         ({"t": lambda t: t * 1e6}, r"sample interval is 1e\+04 s: are the timestamps in us"),
         ({"mag": lambda v: np.full_like(v, np.nan)}, r"mag has no present reading \(every row NaN or all zero\)"),
         ({"acc": np.zeros_like}, r"acc has no present reading"),  # a logger's zeros for a sensor it lacks

@@ -10,6 +10,7 @@ are unit vectors.
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple, Sequence
 
 import jax.numpy as jnp
@@ -84,8 +85,16 @@ check_params = comp.check_params
 
 def notes(cfg: Config):
     doc = refs.SCENARIOS[cfg.scenario.replace("-", "_")].__doc__ or ""  # None under python -OO
+    paragraph = " ".join(doc.strip().split("\n\n")[0].split())
+    sentence = re.split(r"\.\s+(?=[A-Z])", paragraph)[0].rstrip(".") + "." if paragraph else ""
+    noise_free = float(cfg.gyro_noise_std) == 0.0 and float(cfg.meas_noise_std) == 0.0
     return [
-        f"scenario {cfg.scenario}: {next(iter(doc.strip().splitlines()), '')}",
+        f"scenario {cfg.scenario}: {sentence}",
+        *(
+            ["noise-free (gyro and vector noise std 0): every run is the same; --gyro-noise / --vector-noise add noise"]
+            if noise_free
+            else []
+        ),
         f"form {cfg.form} (eq. {'10' if cfg.form == 'matrix' else '18'}), gain {cfg.gain} 1/s, k_I {cfg.k_i} 1/s",
         f"sensor samples: {'held over each step' if cfg.hold == 'zoh' else 'interpolated to RK4 stage times'}",
     ]
