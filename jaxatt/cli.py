@@ -194,7 +194,11 @@ def _parser() -> argparse.ArgumentParser:
         "Observer / registry Entry (default robust)",
     )
     fp.add_argument("--params", default=None, help="module:attr of the params of your own observer")
-    fp.add_argument("--gains", default=None, help="gains file (jaxatt tune / broad-tune / fit) to use")
+    fp.add_argument(
+        "--gains",
+        default=None,
+        help="gains file (jaxatt tune / broad-tune / fit) to use; with your own observer, put into --params",
+    )
     fp.add_argument(
         "--frame",
         choices=["ENU", "NED", "NWU"],
@@ -901,7 +905,8 @@ FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
 
 def _observer_and_params(args):
     """(observer, params) of ``--observer`` (a registered name, or module:attr of your own Observer or registry
-    Entry), ``--gains`` (registered) and ``--params`` (module:attr, your own)."""
+    Entry), ``--gains`` (a gains file: of a registered observer, or of your own put into ``--params``) and
+    ``--params`` (module:attr, your own)."""
     from .observers import registry
 
     if ":" in args.observer:
@@ -909,8 +914,15 @@ def _observer_and_params(args):
         params = _import_attr(args.params, "--params") if args.params else None
         if args.gains and isinstance(observer, registry.Entry):
             params = args.gains
-        elif args.gains:
-            raise UserError("--gains applies to registered observers (or registry Entry objects); use --params")
+        elif args.gains:  # gains fitted for your own observer (jaxatt.fit(..., out=)) put into --params
+            if params is None:
+                raise UserError("--gains with your own observer needs --params module:attr (the params they go into)")
+            from .fitting import gainsfile
+
+            held = gainsfile.read(args.gains)["observer"]
+            if held != getattr(observer, "name", held):
+                raise UserError(f"--gains {args.gains}: holds gains of {held!r}, not of {observer.name!r}")
+            params = gainsfile.read_params(args.gains, base=params)
         return observer, params
     if args.params:
         raise UserError("--params applies to your own observer (module:attr); use --gains for a registered one")

@@ -193,7 +193,7 @@ MY_FILTER_MODULE = (
     "def init(p, s):\n"
     "    return S(jnp.asarray(s.t), so3.quat_canonical(so3.matrix_to_quat(so3.triad(s.acc, s.mag))))\n"
     "def step(p, st, s, dt):\n"
-    "    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1), s.gyr]))\n"
+    "    q = st.q + 0.5 * dt * so3.quat_multiply(st.q, jnp.concatenate([jnp.zeros(1), p.k * s.gyr]))\n"
     "    q = q / jnp.linalg.norm(q)\n"
     "    return S(st.t + dt, q), S(st.t + dt, q)\n"
     "OBSERVER = jaxatt.Observer(init, step, 'gyro_only')\n"
@@ -229,6 +229,26 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
     )
     table = np.genfromtxt(out, delimiter=",", names=True)
     assert table.dtype.names == ("t", "qw", "qx", "qy", "qz") and len(table) == len(samples.t)
+    # --gains of your own observer (a file jaxatt.fit(..., out=) writes) go into --params: k = 0 stops the gyro
+    from typing import NamedTuple
+
+    from jaxatt.fitting import gainsfile
+
+    class P(NamedTuple):
+        k: float
+
+    gains = tmp_path / "mine.json"
+    gainsfile.write(gains, observer="gyro_only", params=P(0.0))
+    own = ["filter", "--log", str(log), "--observer", "my_filter:OBSERVER", "--params", "my_filter:PARAMS"]
+    out2 = tmp_path / "est_gains.csv"
+    assert cli.main([*own, "--gains", str(gains), "--out", str(out2)]) == 0
+    held = np.genfromtxt(out2, delimiter=",", names=True)
+    q = np.column_stack([held[c] for c in ("qw", "qx", "qy", "qz")])
+    np.testing.assert_array_equal(q, np.tile(q[0], (len(q), 1)))  # the start, never turned
+    assert not np.allclose(np.column_stack([table[c] for c in ("qw", "qx", "qy", "qz")])[-1], q[-1])
+    gainsfile.write(gains, observer="someone_else", params=P(0.0))
+    assert cli.main([*own, "--gains", str(gains), "--out", str(out2)]) == 2
+    assert cli.main([*own[:-2], "--gains", str(gains), "--out", str(out2)]) == 2
 
 
 def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
