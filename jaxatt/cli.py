@@ -989,8 +989,12 @@ def _filter(args) -> int:
             np.savetxt(f, table, delimiter=",", fmt="%.17g")
 
         io.write_atomic(out, write)
+    from .observers import registry
+
+    own = not isinstance(observer, (str, registry.Entry))  # your Observer: its estimate is not converted
+    frame = f"{est.frame} as labelled, not converted: your observer's own frame" if own else est.frame
     print(
-        f"{est.observer}: {len(est.t)} estimates ({est.frame}, {est.quat.dtype}) written to {args.out} "
+        f"{est.observer}: {len(est.t)} estimates ({frame}, {est.quat.dtype}) written to {args.out} "
         f"with columns {', '.join(names)}"
     )
     return 0

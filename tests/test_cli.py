@@ -201,7 +201,7 @@ MY_FILTER_MODULE = (
 )
 
 
-def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
+def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch, capsys):
     """--observer module:attr --params module:attr: an observer defined in the user's own file."""
     from jaxatt.data import logs
 
@@ -229,6 +229,7 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch):
     )
     table = np.genfromtxt(out, delimiter=",", names=True)
     assert table.dtype.names == ("t", "qw", "qx", "qy", "qz") and len(table) == len(samples.t)
+    assert "(ENU as labelled, not converted: your observer's own frame, float64)" in capsys.readouterr().out
     # --gains of your own observer (a file jaxatt.fit(..., out=) writes) go into --params: k = 0 stops the gyro
     from typing import NamedTuple
 
