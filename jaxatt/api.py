@@ -142,11 +142,67 @@ def trials_start_from_valid(entry, trials: list) -> list:
     return out
 
 
+def _moving_mean(x: np.ndarray, k: int) -> np.ndarray:
+    """Mean of each k consecutive rows (the last k - 1 rows repeat the last mean); NaN where a window has NaN."""
+    if k <= 1 or len(x) < k:
+        return x
+    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), x]), axis=0)
+    out = (c[k:] - c[:-k]) / k
+    return np.concatenate([out, np.repeat(out[-1:], k - 1, axis=0)])
+
+
+#: Windows (s) over which :func:`gyro_rotation_ratio` compares the gyro's rotation with the acc-mag frame's.
+RATIO_WINDOWS = (0.5, 1.0, 2.0)
+
+
+def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[float]:
+    """How far the gyro turns against the accelerometer-magnetometer frame (a units check needing no filter):
+    the median over windows of :data:`RATIO_WINDOWS` of |sum of gyr dt| / the rotation angle between the frames
+    (gravity, gravity x field; from 50-ms means of acc and mag, in the body) at the window's ends. Windows whose
+    ends are near rest (|acc| within 10 % of its median, |mag| within 10 %) and turn 10-90 deg count; None with
+    fewer than 5. About 1 for gyr in rad/s (0.25-1.1 on the 20 BROAD trials), 57 for deg/s given as rad/s
+    (14-63 on BROAD: fast translation makes the frame turn with the linear acceleration)."""
+    if acc is None or mag is None or len(ts) < 3:
+        return None
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN sensor: no window counts
+        dt = np.diff(ts)
+        step = float(np.median(dt))
+        k = max(1, int(round(0.05 / step)))
+        a_s, m_s = _moving_mean(acc, k), _moving_mean(mag, k)
+        e1 = a_s / np.linalg.norm(a_s, axis=-1, keepdims=True)
+        e2 = np.cross(a_s, m_s)
+        e2 = e2 / np.linalg.norm(e2, axis=-1, keepdims=True)
+        frame = np.stack([e1, e2, np.cross(e1, e2)], axis=-1)  # (T, 3, 3): the nav basis in body coordinates
+        a_n, m_n = np.linalg.norm(acc, axis=-1), np.linalg.norm(mag, axis=-1)
+        near_rest = (np.abs(a_n - np.nanmedian(a_n)) < 0.1 * np.nanmedian(a_n)) & (
+            np.abs(m_n - np.nanmedian(m_n)) < 0.1 * np.nanmedian(m_n)
+        )
+        near_rest &= np.all(np.isfinite(frame), axis=(-1, -2))
+        turned = np.concatenate(
+            [np.zeros((1, 3)), np.cumsum(np.where(np.isfinite(gyr[:-1]), gyr[:-1], 0.0) * dt[:, None], 0)]
+        )
+        ratios = []
+        for w in RATIO_WINDOWS:
+            n = max(1, int(round(w / step)))
+            if n >= len(ts):
+                continue
+            i = np.arange(0, len(ts) - n, max(1, (len(ts) - n) // max_windows))
+            i = i[near_rest[i] & near_rest[i + n]]
+            rel = np.einsum("nki,nkj->nij", frame[i], frame[i + n])
+            seen = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
+            use = (seen > np.deg2rad(10)) & (seen < np.deg2rad(90))
+            ratios.append(np.linalg.norm(turned[i + n] - turned[i], axis=-1)[use] / seen[use])
+        r = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(r)) if len(r) >= 5 else None
+
+
 def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
     widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
     interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no present reading
-    (acc / mag: every row NaN or zero)."""
+    (acc / mag: every row NaN or zero), a gyro that turns over 5x as far as acc and mag do
+    (:func:`gyro_rotation_ratio`: deg/s during slow motion)."""
     with np.errstate(invalid="ignore"):
         notes = []
         if not np.isfinite(gyr).any():
@@ -155,8 +211,14 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
             if a is not None and not _valid_rows(a).any():  # a zero row marks a missing reading, as NaN does
                 notes.append(f"{name} has no present reading (every row NaN or all zero): the filter runs without it")
         g = np.nanmax(np.abs(gyr)) if np.isfinite(gyr).any() else 0.0
+        ratio = gyro_rotation_ratio(gyr, acc, mag, ts)
         if g > 35.0:
             notes.append(f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s")
+        elif ratio is not None and ratio > 5.0:
+            notes.append(
+                f"the gyro turns {ratio:.3g}x as far as the accelerometer and magnetometer do: is gyr in deg/s "
+                "(57x)? jaxatt expects rad/s"
+            )
         if acc is not None and np.isfinite(acc).any():
             acc_norm = float(np.nanmedian(np.linalg.norm(acc, axis=-1)))
             if 0.5 < acc_norm < 2.0:

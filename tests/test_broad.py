@@ -574,6 +574,20 @@ def test_every_broad_trial_passes_the_trial_check():
     assert broad.check_trials(trials, need_scored=True) == trials
 
 
+def test_the_gyro_units_check_tells_rad_from_deg_on_every_broad_trial():
+    """api.gyro_rotation_ratio (the front door's deg/s warning, needing no filter) on real data: every trial's gyro
+    as recorded (rad/s) turns well under 5x as far as its acc-mag frame, the same gyro in deg/s well over 5x."""
+    from jaxatt import api
+
+    need_data()
+    for tr in broad.load(DATA):
+        g, a, m, t = (np.asarray(x) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag, tr.samples.t))
+        rad, deg = api.gyro_rotation_ratio(g, a, m, t), api.gyro_rotation_ratio(np.rad2deg(g), a, m, t)
+        assert rad is not None and deg is not None, tr.name
+        assert 0.1 < rad < 2.5 and deg > 12.0, (tr.name, rad, deg)
+        np.testing.assert_allclose(deg / rad, np.rad2deg(1.0), rtol=1e-9)  # the same windows, scaled
+
+
 def test_a_6d_observer_on_broad_is_warned_about_its_heading(monkeypatch):
     """vqf-6d does not read the magnetometer: its BROAD total and heading errors include an arbitrary heading, and
     broad_score says so (the filter run is replaced by a stub: this checks the boundary, not VQF)."""

@@ -463,6 +463,20 @@ def test_a_degenerate_first_sample_still_starts_on_so3():
     np.testing.assert_allclose(est.rotation[:, 2], np.tile(a[0] / np.linalg.norm(a[0]), (n, 1)), atol=1e-6)
 
 
+def test_a_slowly_turning_gyro_in_deg_per_s_is_warned_about():
+    """At 0.2-1 rad/s a gyro in deg/s stays under 2000 "rad/s": the front door compares how far it turns with the
+    acc-mag frame (about 1x in rad/s, 57x in deg/s) and says so; the same recording in rad/s gets no warning."""
+    samples, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=20.0, dt=0.01)
+    g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
+    assert np.abs(np.rad2deg(g)).max() < 35.0  # the range check alone would not see it
+    with pytest.warns(UserWarning, match=r"the gyro turns 5\d\.?\d*x as far as the accelerometer and magnetometer"):
+        jaxatt.filter("madgwick", np.rad2deg(g), a, m, dt=0.01)
+    assert 0.8 < jaxatt.api.gyro_rotation_ratio(g, a, m, np.arange(len(g)) * 0.01) < 1.25
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxatt.filter("madgwick", g, a, m, dt=0.01)
+
+
 @pytest.mark.parametrize("name", ["nlo", "madgwick"])
 def test_a_recording_without_a_magnetometer_runs_inclination_only(name):
     """A 6-axis recording (no mag) through a 9D observer: the same run as a magnetometer that never reads (every
