@@ -203,7 +203,7 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
     interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no present reading
     (acc / mag: every row NaN or zero), a gyro that turns over 5x as far as acc and mag do
     (:func:`gyro_rotation_ratio`: deg/s during slow motion)."""
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # |acc| of huge readings: inf, said later
         notes = []
         if not np.isfinite(gyr).any():
             notes.append("gyr has no finite reading (every row NaN)")
