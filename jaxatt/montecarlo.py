@@ -415,6 +415,32 @@ class MonteCarloResult(NamedTuple):
     complete: bool
     first_nonfinite_t: Optional[np.ndarray] = None
 
+    def summary(self) -> Dict[str, Dict[str, Any]]:
+        """metric -> {mean, std, min, max, per_run} over the runs done (NaN-aware; the layout of the CLI's
+        Monte Carlo JSON, ``metrics.<name>``), in the metrics' own units (``_deg`` in degrees)."""
+        from . import io
+
+        return io.summarise(self.per_run)
+
+    def save_json(self, path) -> None:
+        """Write ``{runs, run_indices, complete, wall_s, first_nonfinite, metrics: summary(), environment}`` as
+        JSON, atomically (``path`` is checked first: ValueError naming it)."""
+        from . import io
+
+        io.check_output_path(path, "path", suffixes=io.JSON_SUFFIXES)
+        io.write_json(
+            path,
+            {
+                "runs": int(len(self.run_indices)),
+                "run_indices": np.asarray(self.run_indices).tolist(),
+                "complete": bool(self.complete),
+                "wall_s": float(self.wall_s),
+                "first_nonfinite": self.first_nonfinite(),
+                "metrics": self.summary(),
+                "environment": io.environment(),
+            },
+        )
+
     def first_nonfinite(self) -> Optional[str]:
         """Where the first non-finite result appeared ("run k: ... at t = ... s"), or None when all are finite."""
         n = len(self.run_indices)

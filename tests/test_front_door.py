@@ -205,10 +205,20 @@ def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, 
     assert float(again.params.kp) == float(res.params.kp) and again.best_loss == res.best_loss
 
 
-def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log():
+def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log(tmp_path):
     """Run 0 of the fused Monte Carlo equals the filter on the recorded log of the same run (same key): two paths,
-    one number."""
+    one number. The result's summary and JSON are the per-run numbers' statistics (numpy)."""
     res = jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, runs=2, duration=20.0, seed=5)
+    res.save_json(tmp_path / "mc.json")
+    saved = json.loads((tmp_path / "mc.json").read_text())
+    assert saved["runs"] == 2 and saved["complete"] and saved["first_nonfinite"] is None
+    for k, v in res.per_run.items():
+        assert saved["metrics"][k]["per_run"] == np.asarray(v).tolist()
+        assert saved["metrics"][k]["mean"] == pytest.approx(float(np.mean(v)), rel=1e-12)
+        assert saved["metrics"][k]["std"] == pytest.approx(float(np.std(v)), rel=1e-12, abs=1e-300)
+    assert res.summary() == saved["metrics"]
+    with pytest.raises(ValueError, match=r"unknown extension '\.csv'"):
+        res.save_json(tmp_path / "mc.csv")
     assert res.complete and set(res.per_run) >= {"mean_angle_error_deg", "std_yaw", "std_bias"}
     samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=20.0, dt=0.01, seed=5)
     est = jaxatt.filter(MY_OBSERVER, samples.gyr, samples.acc, samples.mag, dt=0.01, params=MY_PARAMS)
