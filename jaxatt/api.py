@@ -143,38 +143,68 @@ def trials_start_from_valid(entry, trials: list) -> list:
 
 
 def _moving_mean(x: np.ndarray, k: int) -> np.ndarray:
-    """Mean of each k consecutive rows (the last k - 1 rows repeat the last mean); NaN where a window has NaN."""
+    """Mean of the present rows (finite, not all zero) among each k consecutive rows (the last k - 1 rows repeat
+    the last mean); NaN where a window has no present row (a sensor at a lower rate, a dropout)."""
+    ok = _valid_rows(x)
     if k <= 1 or len(x) < k:
-        return x
-    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), x]), axis=0)
-    out = (c[k:] - c[:-k]) / k
+        return np.where(ok[:, None], x, np.nan)
+    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), np.where(ok[:, None], x, 0.0)]), axis=0)
+    n = np.cumsum(np.concatenate([[0], ok.astype(np.int64)]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (c[k:] - c[:-k]) / (n[k:] - n[:-k])[:, None]
     return np.concatenate([out, np.repeat(out[-1:], k - 1, axis=0)])
+
+
+def _rows_in(seconds: float, step: float, length: int) -> Optional[int]:
+    """How many sample intervals of ``step`` s make ``seconds`` (at least 1); None when that is not under
+    ``length`` (or the step is not a positive finite number)."""
+    rows = seconds / step if np.isfinite(step) and step > 0 else np.inf
+    return max(1, int(round(rows))) if rows < length else None
+
+
+def _present_spacing(x: np.ndarray) -> int:
+    """Median number of rows between present readings of x (1 at the full rate; 10 for a sensor at a tenth)."""
+    rows = np.flatnonzero(_valid_rows(x))
+    return int(np.median(np.diff(rows))) if len(rows) > 1 else 1
+
+
+def _frame_angle(frame: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) between the body-frame bases frame[i] and frame[j] (each (3, 3))."""
+    rel = np.einsum("nki,nkj->nij", frame[i], frame[j])
+    return np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
 
 
 #: Windows (s) over which :func:`gyro_rotation_ratio` compares the gyro's rotation with the acc-mag frame's.
 RATIO_WINDOWS = (0.5, 1.0, 2.0)
+#: Sub-windows per window whose chained frame angles must stay under 180 deg (no spin through a half turn).
+RATIO_SUBWINDOWS = 8
 
 
 def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[float]:
     """How far the gyro turns against the accelerometer-magnetometer frame (a units check needing no filter):
     the median over windows of :data:`RATIO_WINDOWS` of |sum of gyr dt| / the rotation angle between the frames
-    (gravity, gravity x field; from 50-ms means of acc and mag, in the body) at the window's ends. Windows whose
-    ends are near rest (|acc| within 10 % of its median, |mag| within 10 %) and turn 10-90 deg count; None with
-    fewer than 5. About 1 for gyr in rad/s (0.25-1.1 on the 20 BROAD trials), 57 for deg/s given as rad/s
-    (14-63 on BROAD: fast translation makes the frame turn with the linear acceleration)."""
+    (gravity, gravity x field; from 50-ms means of the present acc and mag readings, longer for a sensor at a
+    lower rate, in the body) at the window's
+    ends. Windows whose ends are near rest (|acc| within 10 % of its median, |mag| within 10 %) and turn
+    10-90 deg count, unless the frame's path through :data:`RATIO_SUBWINDOWS` sub-windows reaches 180 deg (a fast
+    spin, whose net angle wraps); None with fewer than 5. About 1 for gyr in rad/s (0.25-1.1 on the 20 BROAD
+    trials), 57 for deg/s given as rad/s (14-63 on BROAD: fast translation makes the frame turn with the linear
+    acceleration)."""
     if acc is None or mag is None or len(ts) < 3:
         return None
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN sensor: no window counts
         dt = np.diff(ts)
         step = float(np.median(dt))
-        k = max(1, int(round(0.05 / step)))
-        a_s, m_s = _moving_mean(acc, k), _moving_mean(mag, k)
-        e1 = a_s / np.linalg.norm(a_s, axis=-1, keepdims=True)
+        k = _rows_in(0.05, step, len(ts))
+        if k is None:
+            return None
+        a_s, m_s = (_moving_mean(x, max(k, _present_spacing(x))) for x in (acc, mag))
+        a_n, m_n = np.linalg.norm(a_s, axis=-1), np.linalg.norm(m_s, axis=-1)
+        e1 = a_s / a_n[:, None]
         e2 = np.cross(a_s, m_s)
         e2 = e2 / np.linalg.norm(e2, axis=-1, keepdims=True)
         frame = np.stack([e1, e2, np.cross(e1, e2)], axis=-1)  # (T, 3, 3): the nav basis in body coordinates
-        a_n, m_n = np.linalg.norm(acc, axis=-1), np.linalg.norm(mag, axis=-1)
         near_rest = (np.abs(a_n - np.nanmedian(a_n)) < 0.1 * np.nanmedian(a_n)) & (
             np.abs(m_n - np.nanmedian(m_n)) < 0.1 * np.nanmedian(m_n)
         )
@@ -184,14 +214,15 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
         )
         ratios = []
         for w in RATIO_WINDOWS:
-            n = max(1, int(round(w / step)))
-            if n >= len(ts):
+            n = _rows_in(w, step, len(ts))
+            if n is None:
                 continue
             i = np.arange(0, len(ts) - n, max(1, (len(ts) - n) // max_windows))
             i = i[near_rest[i] & near_rest[i + n]]
-            rel = np.einsum("nki,nkj->nij", frame[i], frame[i + n])
-            seen = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
-            use = (seen > np.deg2rad(10)) & (seen < np.deg2rad(90))
+            seen = _frame_angle(frame, i, i + n)
+            cuts = [i + (n * c) // RATIO_SUBWINDOWS for c in range(RATIO_SUBWINDOWS + 1)]
+            path = sum(_frame_angle(frame, u, v) for u, v in zip(cuts[:-1], cuts[1:]))  # NaN: not counted
+            use = (seen > np.deg2rad(10)) & (seen < np.deg2rad(90)) & (path < np.pi)
             ratios.append(np.linalg.norm(turned[i + n] - turned[i], axis=-1)[use] / seen[use])
         r = np.concatenate(ratios) if ratios else np.zeros(0)
     return float(np.median(r)) if len(r) >= 5 else None

@@ -50,7 +50,7 @@ class UserError(Exception):
 def _floats(n: int):
     def parse(s: str):
         try:
-            v = [float(x) for x in s.replace(" ", "").split(",") if x != ""]
+            v = [float(x) for x in s.replace(" ", "").split(",")]  # '1,2,3,' has an empty 4th: refused
         except ValueError as e:
             raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {s!r}") from e
         if len(v) != n:
@@ -862,6 +862,11 @@ def _import_attr(spec: str, flag: str):
         mod = importlib.import_module(mod_name)
     except ImportError as e:
         raise UserError(f"{flag} {spec}: cannot import {mod_name} ({e})") from None
+    except SystemExit as e:  # the module runs a script's sys.exit when imported: jaxatt would exit with its code
+        raise UserError(
+            f"{flag} {spec}: importing {mod_name} called sys.exit({e.code!r}): guard its script part with "
+            "if __name__ == '__main__':"
+        ) from None
     except Exception as e:  # the user's module fails while it is imported: one line, not its traceback
         where = ""
         tb = e.__traceback__
@@ -896,7 +901,17 @@ def _load_any_log(path: str, dt: Optional[float] = None):
     if Path(path).suffix.lower() in (".hdf5", ".h5"):
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
-    return logs.load_log(path, dt=dt), None
+    try:
+        return logs.load_log(path, dt=dt), None
+    except ValueError as e:
+        if dt is None:
+            raise
+        try:  # --dt times the log: timestamps that are broken need not stop it
+            samples = logs.load_log(path, dt=dt, replace_t=True)
+        except ValueError:
+            raise e from None
+        warnings.warn(f"the log's timestamps are not read, --dt {dt:g} s times it: {e}", stacklevel=1)
+        return samples, None
 
 
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
@@ -913,6 +928,11 @@ def _observer_and_params(args):
         observer = _import_attr(args.observer, "--observer")
         params = _import_attr(args.params, "--params") if args.params else None
         if args.gains and isinstance(observer, registry.Entry):
+            if params is not None:
+                raise UserError(
+                    f"--observer {args.observer} is a registry Entry: give its gains by --gains or its params by "
+                    "--params, not both"
+                )
             params = args.gains
         elif args.gains:  # gains fitted for your own observer (jaxatt.fit(..., out=)) put into --params
             if params is None:

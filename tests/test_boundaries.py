@@ -265,6 +265,7 @@ BAD_INPUT = [
     (["simulate", "--observer", "batista-ges", *MC, "--reference=0,0,0"], r"error: reference must be a non-zero"),
     (["simulate", "--observer", "batista-so3", *MC, "--reference=1e-300,0,0"], r"error: reference must be a non-zero"),
     (["simulate", "--observer", "batista-ges", *MC, "--reference=1e300,1,0"], r"error: reference must be a non-zero"),
+    (["simulate", "--observer", "batista-ges", *MC, "--reference=1,2,3,"], r"--reference: expected 3 comma-separated"),
     (["evaluate", "--experiment", "batista-so3", "--runs", "1", "--duration", "1e300"], r"steps per run"),
     (["excitation", "--scenario", "rotating", "--duration", "1e300"], r"steps per run"),
     (["tune", "--experiment", "batista-so3", "--val-runs", "1" + "0" * 20], r"argument --val-runs: must be <="),

@@ -170,6 +170,17 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     np.testing.assert_allclose(np.column_stack([got[c] for c in ("qw", "qx", "qy", "qz")]), by_dt.quat, atol=1e-15)
     assert cli.main(["filter", "--log", str(no_t), "--observer", "mahony", "--out", str(out5)]) == 2
     assert "required column 't' missing" in capsys.readouterr().err
+    # timestamps that are broken (a repeated time) do not stop --dt, which replaces them (said on stderr), and a
+    # time column under another name is said to be unread: both the same estimates as the API given dt
+    for text, said in (
+        (log.read_text().replace("\n0.01", "\n0", 1), "the log's timestamps are not read, --dt 0.01 s times it: "),
+        ("time" + log.read_text()[1:], "column 'time' is not read: dt times the log"),
+    ):
+        no_t.write_text(text)
+        assert cli.main(["filter", "--log", str(no_t), "--observer", "mahony", "--dt", "0.01", "--out", str(out5)]) == 0
+        assert said in capsys.readouterr().err
+        got = np.genfromtxt(out5, delimiter=",", names=True)
+        np.testing.assert_allclose(np.column_stack([got[c] for c in ("qw", "qx", "qy", "qz")]), by_dt.quat, atol=1e-15)
     # --out .npz: the same columns as arrays
     out3 = tmp_path / "est.npz"
     assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", str(out3)]) == 0
@@ -250,6 +261,20 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch, cap
     gainsfile.write(gains, observer="someone_else", params=P(0.0))
     assert cli.main([*own, "--gains", str(gains), "--out", str(out2)]) == 2
     assert cli.main([*own[:-2], "--gains", str(gains), "--out", str(out2)]) == 2
+    # a registry Entry of your own with both --params and --gains (one would be dropped), and a module that
+    # exits while it is imported (jaxatt exited 0 with no output): refused, exit 2
+    (tmp_path / "my_entry.py").write_text(
+        "from jaxatt.observers import registry\nENTRY = registry.get('madgwick')\nPARAMS = ENTRY.params()\n"
+    )
+    (tmp_path / "my_script.py").write_text("import sys\nsys.exit(0)\n")
+    capsys.readouterr()
+    entry = ["filter", "--log", str(log), "--observer", "my_entry:ENTRY", "--out", str(out2)]
+    assert cli.main([*entry, "--params", "my_entry:PARAMS", "--gains", str(gains)]) == 2
+    assert (
+        "is a registry Entry: give its gains by --gains or its params by --params, not both" in capsys.readouterr().err
+    )
+    assert cli.main(["filter", "--log", str(log), "--observer", "my_script:OBSERVER", "--out", str(out2)]) == 2
+    assert "importing my_script called sys.exit(0): guard its script part" in capsys.readouterr().err
 
 
 def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):

@@ -487,6 +487,36 @@ def test_a_slowly_turning_gyro_in_deg_per_s_is_warned_about():
         jaxatt.filter("madgwick", g, a, m, dt=0.01)
 
 
+def _spin(rate: float, n: int = 3000, dt: float = 0.01):
+    """gyr, acc, mag (body, rad/s, m/s^2, uT) of a constant spin at ``rate`` rad/s about a tilted axis (NED)."""
+    axis = np.array([0.3, 0.5, 1.0]) / np.linalg.norm([0.3, 0.5, 1.0])
+    rot = np.asarray(so3.exp(jnp.asarray(rate * dt * np.arange(n)[:, None] * axis)))  # body -> NED
+    g, m = np.array([0.0, 0.0, -9.81]), np.array([20.0, 0.0, 40.0])
+    acc, mag = np.einsum("tji,j->ti", rot, g), np.einsum("tji,j->ti", rot, m)
+    return np.tile(rate * axis, (n, 1)), acc, mag
+
+
+def test_the_gyro_units_check_sees_fast_spins_slow_sensors_and_dropouts_right():
+    """A genuine spin at 3.5-30 rad/s turns the acc-mag frame past a half turn within a window (its net angle
+    wraps): such windows are left out and no deg/s warning is given (it was, at 6-21x). A magnetometer at a
+    tenth of the rate and one missing acc reading still let a slow deg/s gyro be told (57x). A sample step that
+    underflows (1e-320 s) gives no answer instead of an OverflowError."""
+    for rate in (3.5, 10.0, 30.0):
+        g, a, m = _spin(rate)
+        assert jaxatt.api.gyro_rotation_ratio(g, a, m, np.arange(len(g)) * 0.01) is None, rate
+    g, a, m = _spin(0.5)
+    t = np.arange(len(g)) * 0.01
+    assert jaxatt.api.gyro_rotation_ratio(g, a, m, t) == pytest.approx(1.0, rel=0.02)
+    m[np.arange(len(m)) % 10 != 0] = np.nan
+    a[77] = np.nan
+    assert jaxatt.api.gyro_rotation_ratio(np.rad2deg(g), a, m, t) == pytest.approx(np.rad2deg(1.0), rel=0.02)
+    assert jaxatt.api.gyro_rotation_ratio(g, a, m, np.arange(len(g)) * 1e-320) is None
+    g, a, m = _spin(10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxatt.filter("madgwick", g, a, m, dt=0.01)
+
+
 @pytest.mark.parametrize("name", ["nlo", "madgwick"])
 def test_a_recording_without_a_magnetometer_runs_inclination_only(name):
     """A 6-axis recording (no mag) through a 9D observer: the same run as a magnetometer that never reads (every

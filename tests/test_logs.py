@@ -105,6 +105,7 @@ def test_csv_as_loggers_and_spreadsheets_write_it(tmp_path):
     said("time,gyr_x,gyr_y,gyr_z", r"required column 't' missing .*; 'time' looks like it: name it 't'$")
     said("T,GYR_X,GYR_Y,GYR_Z", r"'T' looks like it: name it 't'")
     said("t [s],gyr_x [rad/s],gyr_y [rad/s],gyr_z [rad/s]", r"'t \[s\]' looks like it: name it 't'")
+    said("t,gyr_x [deg/s],gyr_y [deg/s],gyr_z [deg/s]", r"name it 'gyr_x' and convert it to rad/s")
     said("t,gyro_x,gyro_y,gyro_z", r"required column 'gyr_x' missing .*'gyro_x' looks like it: name it 'gyr_x'")
     said("t,gx,gy,gz", r"'gyr_x' missing .*; the columns read are t, gyr_x, gyr_y, gyr_z and the groups")
     said(",gyr_x,gyr_y,gyr_z", r"the first column has no name: if it holds the times, name it 't'")
@@ -222,11 +223,15 @@ def test_a_log_without_timestamps_is_timed_by_dt(tmp_path, suffix):
     np.testing.assert_array_equal(q_back, q)
     with pytest.raises(ValueError, match=r"required (column|array) 't' missing .*give the sample period"):
         logs.load_log(p)
-    for bad in (0.0, -1.0, float("nan"), "x"):
+    for bad in (0.0, -1.0, float("nan"), "x", True):  # True is not 1 s
         with pytest.raises(ValueError, match="dt must be a"):
             logs.load_log(p, dt=bad)
     logs.save_log(p, s)
     assert_same(s, logs.load_log(p, dt=0.005))
+    # replace_t: the log's own t is not read (it may be broken) and dt times the log
+    assert_same(s._replace(t=back.t), logs.load_log(p, dt=0.005, replace_t=True))
+    with pytest.raises(ValueError, match="dt must be a number of seconds, got None"):
+        logs.load_log(p, replace_t=True)
 
 
 def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
@@ -314,3 +319,30 @@ def test_non_numeric_fields_are_refused_in_one_line(tmp_path, field, value, matc
         np.savez(p, **{"t": np.arange(4) * 0.01, "gyr": np.zeros((4, 3)), field: value})
         with pytest.raises(ValueError, match=match):
             logs.load_log(p)
+
+
+def test_csv_errors_name_the_file_line_and_numpy_savetxt_headers_read(tmp_path):
+    """Error lines count every line of the file (comments and blank lines above the header and between rows);
+    a quote left open is named (in a long file Python's csv reader stopped with 'field larger than field limit',
+    a traceback); blank lines above the header are skipped and numpy.savetxt's commented header
+    ('# t,gyr_x,...', its default) is the header: the file reads as the plain one (numpy writes both)."""
+    p = tmp_path / "x.csv"
+
+    def bad(text, match):
+        p.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            logs.load_log(p)
+
+    bad("# logger\n\nt,gyr_x,gyr_y,gyr_z\n0,1,2,3\n\n0.1,1,x,3\n", r"x\.csv: line 6: column 'gyr_y': 'x' is not")
+    bad('t,gyr_x,gyr_y,gyr_z\n0,1,2,3\n0.1,"1,2,3\n0.2,1,2,3\n', r"line 3 has 2 fields.*a quote \(\"\) opened there")
+    rows = [f"{0.01 * i:.2f},1,2,3" for i in range(30000)]
+    rows[40] = '0.40,"1,2,3'
+    bad("t,gyr_x,gyr_y,gyr_z\n" + "\n".join(rows) + "\n", r"line 42: cannot be read as CSV .*a quote \(\"\) left open")
+    bad("# notes\n0,1,2,3\n", r"line 2 must be a header naming the columns")
+    table = np.array([[0.0, 1.0, 2.0, 3.0], [0.01, 1.5, 2.5, 3.5]])
+    np.savetxt(p, table, delimiter=",", header="t,gyr_x,gyr_y,gyr_z", comments="")
+    want = logs.load_log(p)
+    np.savetxt(p, table, delimiter=",", header="t,gyr_x,gyr_y,gyr_z")  # '# t,gyr_x,...'
+    assert_same(want, logs.load_log(p))
+    p.write_text("\n\n" + p.read_text())
+    assert_same(want, logs.load_log(p))

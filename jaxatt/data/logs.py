@@ -221,7 +221,14 @@ def _parse_float(s: str, row: int, col: str, source: str, decimal_comma: bool = 
     try:
         return float(s.replace(",", ".") if decimal_comma else s)
     except ValueError:
-        raise ValueError(f"{source}: line {row}: column {col!r}: {s!r} is not a number") from None
+        raise ValueError(f"{source}: line {row}: column {col!r}: {_shown(s)} is not a number") from None
+
+
+def _shown(cell: str, most: int = 40) -> str:
+    """A cell as an error message shows it: its repr, cut to ``most`` characters (a quote left open swallows
+    the lines after it into one cell)."""
+    r = repr(cell)
+    return r if len(r) <= most else r[: most - 5] + "...'" + f" ({len(cell)} characters)"
 
 
 def _read_table_fast(f, columns: list, n_header: int, sep: str = ",") -> Optional[np.ndarray]:
@@ -239,24 +246,37 @@ def _read_table_fast(f, columns: list, n_header: int, sep: str = ",") -> Optiona
     return table[:, columns]
 
 
-def _read_table_checked(f, header: list, columns: list, src: str, sep: str = ",") -> np.ndarray:
+def _read_table_checked(f, header: list, columns: list, src: str, sep: str = ",", first_line: int = 2) -> np.ndarray:
     """The data rows' ``columns`` cell by cell: empty cells are NaN, anything else that is not a number is an
-    error naming its line and column (with a semicolon or tab separator a decimal comma is a decimal point)."""
-    rows = [r for r in csv.reader(f, delimiter=sep) if r and any(c.strip() for c in r)]
+    error naming its line (in the file: ``first_line`` is the first data row's) and column (with a semicolon or
+    tab separator a decimal comma is a decimal point)."""
+    reader = csv.reader(f, delimiter=sep)
+    rows, lines, last = [], [], 0
+    try:
+        for r in reader:
+            if r and any(c.strip() for c in r):
+                rows.append(r)
+                lines.append(first_line + last)  # the line the row starts on
+            last = reader.line_num
+    except csv.Error as e:
+        raise ValueError(
+            f'{src}: line {first_line + last}: cannot be read as CSV ({e}): is a quote (") left open there?'
+        ) from None
     if not rows:
         raise ValueError(f"{src}: no data rows")
     table = np.empty((len(rows), len(columns)))
     need = max(columns) + 1
     for k, r in enumerate(rows):
         if len(r) < need or any(c.strip() for c in r[len(header) :]):  # short, or values beyond the header
-            raise ValueError(f"{src}: line {k + 2} has {len(r)} fields, header has {len(header)}")
+            quote = ': a quote (") opened there is never closed' if any("\n" in c for c in r) else ""
+            raise ValueError(f"{src}: line {lines[k]} has {len(r)} fields, header has {len(header)}{quote}")
     for j, i in enumerate(columns):
         cells = [r[i].strip() for r in rows]
         if header[i] == "t" and _datetime_column(cells):
-            table[:, j] = _datetime_seconds(cells, src)
+            table[:, j] = _datetime_seconds(cells, src, lines)
             continue
         for k, c in enumerate(cells):
-            table[k, j] = _parse_float(c, k + 2, header[i], src, decimal_comma=sep != ",")
+            table[k, j] = _parse_float(c, lines[k], header[i], src, decimal_comma=sep != ",")
     return table
 
 
@@ -274,7 +294,7 @@ def _datetime_column(cells: list) -> bool:
     return True
 
 
-def _datetime_seconds(cells: list, src: str) -> np.ndarray:
+def _datetime_seconds(cells: list, src: str, lines: list) -> np.ndarray:
     """A CSV time column of ISO 8601 date-times as seconds since the first row (empty -> NaN: refused later)."""
     out = np.empty(len(cells), dtype="datetime64[ns]")
     for k, c in enumerate(cells):
@@ -283,13 +303,17 @@ def _datetime_seconds(cells: list, src: str) -> np.ndarray:
                 warnings.simplefilter("ignore")  # an offset such as +02:00 is applied (times in UTC)
                 out[k] = np.datetime64(c, "ns") if c else np.datetime64("NaT")
         except ValueError:
-            raise ValueError(f"{src}: line {k + 2}: column 't': {c!r} is not a date-time like the first row") from None
+            raise ValueError(
+                f"{src}: line {lines[k]}: column 't': {_shown(c)} is not a date-time like the first row"
+            ) from None
     return timestamp_seconds(out)
 
 
 def _uniform_times(n: int, dt: Optional[float], src: str) -> np.ndarray:
     """t = 0, dt, 2 dt, ... (s) for a log without timestamps; ``dt`` must be a finite positive number."""
     try:
+        if isinstance(dt, (bool, np.bool_)):  # True would be 1 s
+            raise TypeError
         step = float(dt)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         raise ValueError(f"{src}: dt must be a number of seconds, got {dt!r}") from None
@@ -304,29 +328,38 @@ _COLUMNS_READ = "; the columns read are t, gyr_x, gyr_y, gyr_z and the groups ac
 MISSING_CELLS = frozenset({"na", "n/a", "null", "none"})
 
 
-def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
+def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
     """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None)).
 
     ``dt`` (s): the sample period of a log without a ``t`` column (t = 0, dt, 2 dt, ...); a ``t`` column, when
-    there is one, is read and ``dt`` is not used. Plain numeric files go through numpy's C reader; a file with
+    there is one, is read and ``dt`` is not used (``replace_t``: the column is not read and ``dt`` times the log).
+    Plain numeric files go through numpy's C reader; a file with
     empty cells (read as NaN) or anything unusual is read cell by cell, and a cell that is not a number is
     refused with its line and column."""
     path = Path(path)
     src = str(path)
     with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
-        first = f.readline()
-        while first.startswith("#"):  # a logger's comment lines above the header
-            first = f.readline()
+        start, first, line, comment = f.tell(), f.readline(), 1, ""
+        while first and (first.startswith("#") or not first.strip()):  # comments and blank lines above the header
+            comment = first if first.startswith("#") else comment
+            start, first, line = f.tell(), f.readline(), line + 1
         if not first.strip():
             raise ValueError(f"{src}: empty file (a header line is required)")
         sep = _separator(first)
         header = [h.strip() for h in next(csv.reader([first], delimiter=sep))]
         if any(header) and all(_is_number(h) for h in header if h):
-            raise ValueError(
-                f"{src}: the first line must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
-            )
+            named = [h.strip() for h in next(csv.reader([comment.lstrip("#")], delimiter=sep))] if comment else []
+            if "gyr_x" not in named:
+                raise ValueError(
+                    f"{src}: line {line} must be a header naming the columns (t, gyr_x, gyr_y, gyr_z, ...), got numbers"
+                )
+            header, line = named, line - 1  # numpy.savetxt's header: '# t,gyr_x,...' above the numbers
+            f.seek(start)
         if len(set(header)) != len(header):
             raise ValueError(f"{src}: duplicate column names in the header: {header}")
+        if replace_t:
+            _uniform_times(0, dt, src)  # dt must be given
+            header = ["" if h == "t" else h for h in header]  # not read
         idx = {h: i for i, h in enumerate(header)}
         required = CSV_COLUMNS["gyr"] if dt is not None else CSV_COLUMNS["t"] + CSV_COLUMNS["gyr"]
         for c in required:
@@ -336,6 +369,8 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
                     hint = " (separate the columns with commas, semicolons or tabs)"
                 elif looks:
                     hint = f"; {looks[0]!r} looks like it: name it {c!r}"
+                    if "deg" in looks[0].lower():
+                        hint += " and convert it to rad/s (jaxatt reads gyr in rad/s)"
                 elif c == "t" and header[0] == "":
                     hint = "; the first column has no name: if it holds the times, name it 't'" + _NO_TIME_HINT
                 else:
@@ -349,9 +384,14 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
                 raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
             if all(present):
                 groups[name] = cols
-            elif name != "t":
+            elif name != "t" or (dt is not None and not replace_t):  # t's look-alike is unread when dt times it
                 looks = sorted({h for c in cols for h in _lookalikes(c, header)}, key=header.index)
-                if looks:
+                if looks and name == "t":
+                    warnings.warn(
+                        f"{src}: column {looks[0]!r} is not read: dt times the log (name the column 't' to use it)",
+                        stacklevel=3,
+                    )
+                elif looks:
                     warnings.warn(
                         f"{src}: columns {looks} are not read: the {name} columns are named {', '.join(cols)}",
                         stacklevel=3,
@@ -362,7 +402,7 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None):
         table = _read_table_fast(f, columns, len(header), sep)
         if table is None:
             f.seek(body)
-            table = _read_table_checked(f, header, columns, src, sep)
+            table = _read_table_checked(f, header, columns, src, sep, first_line=line + 1)
     at = {c: j for j, c in enumerate(names)}
     data = {}
     for name, cols in groups.items():
@@ -397,10 +437,11 @@ def save_csv(path, samples: ImuSample, quat_true=None) -> None:
 # ------------------------------------------------------------------------------------------------------------
 # NPZ
 # ------------------------------------------------------------------------------------------------------------
-def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None):
+def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
     """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q)).
 
-    ``dt`` (s): the sample period of a log without a ``t`` array (t = 0, dt, 2 dt, ...); not used when it has one."""
+    ``dt`` (s): the sample period of a log without a ``t`` array (t = 0, dt, 2 dt, ...); not used when it has one
+    (``replace_t``: the array is not read and ``dt`` times the log)."""
     src = str(path)
     try:
         z = np.load(path, allow_pickle=False)
@@ -415,6 +456,9 @@ def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None):
         if k not in keys:
             hint = _NO_TIME_HINT if k == "t" else ""
             raise ValueError(f"{src}: required array {k!r} missing (arrays: {sorted(keys)}){hint}")
+    if replace_t:
+        _uniform_times(0, dt, src)  # dt must be given
+        arrays.pop("t", None)
     get = arrays.get
     if "t" not in arrays:
         arrays["t"] = _uniform_times(len(np.atleast_1d(arrays["gyr"])), dt, src)
@@ -446,19 +490,20 @@ def _kind(path) -> str:
     raise ValueError(f"{path}: unknown log format {suf!r} (use .csv or .npz)")
 
 
-def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None):
+def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
     """Read a .csv or .npz log (see the module docstring for columns, units and frames).
 
     Returns ImuSample(t (N,), gyr (N, 3), acc (N, 3) or None, mag (N, 3) or None) of float64 numpy arrays, or
     (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. ``dt`` (s): the sample period of a log with
-    no timestamps (t = 0, dt, 2 dt, ...; a log's own ``t`` is read instead when it has one). Raises ValueError
-    on wrong shapes, missing columns, non-numeric fields, non-finite or non-increasing time.
+    no timestamps (t = 0, dt, 2 dt, ...; a log's own ``t`` is read instead when it has one, unless
+    ``replace_t``: then it is not read at all, for timestamps that are broken). Raises ValueError on wrong
+    shapes, missing columns, non-numeric fields, non-finite or non-increasing time.
     """
     kind = _kind(path)
     if not Path(path).is_file():
         raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
     try:
-        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt)
+        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
     except (OSError, UnicodeDecodeError, EOFError) as e:
         raise ValueError(f"log {path}: cannot read it ({e})") from None
 

@@ -282,7 +282,9 @@ def check_references(
             raise ValueError(f"{name} must have shape (3,), got {v.shape}")
         if not np.all(np.isfinite(v)) or not VECTOR_MAGNITUDE[0] <= np.max(np.abs(v)) <= VECTOR_MAGNITUDE[1]:
             lo, hi = VECTOR_MAGNITUDE
-            raise ValueError(f"{name} must be finite and non-zero, of magnitude {lo:g} to {hi:g}, got {v}")
+            raise ValueError(
+                f"{name} must be finite and non-zero, its largest component {lo:g} to {hi:g} in size, got {v}"
+            )
     m, w = m / np.max(np.abs(m)), w / np.max(np.abs(w))  # directions only: no underflow or overflow below
     s = np.linalg.norm(np.cross(m, w)) / (np.linalg.norm(m) * np.linalg.norm(w))
     if s < min_sin_angle:

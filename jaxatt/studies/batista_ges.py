@@ -179,7 +179,8 @@ def check_config(cfg) -> None:
     lo, hi = ges.VECTOR_MAGNITUDE
     if not lo <= np.max(np.abs(ref)) <= hi:
         raise ValueError(
-            f"reference must be a non-zero vector of magnitude {lo:g} to {hi:g} nT (the gains use its powers), "
+            f"reference must be a non-zero vector whose largest component is {lo:g} to {hi:g} nT in size (the gains "
+            "use its powers), "
             f"got {ref.tolist()}"
         )
 
