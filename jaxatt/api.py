@@ -184,12 +184,12 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
     """How far the gyro turns against the accelerometer-magnetometer frame (a units check needing no filter):
     the median over windows of :data:`RATIO_WINDOWS` of |sum of gyr dt| / the rotation angle between the frames
     (gravity, gravity x field; from 50-ms means of the present acc and mag readings, longer for a sensor at a
-    lower rate, in the body) at the window's
-    ends. Windows whose ends are near rest (|acc| within 10 % of its median, |mag| within 10 %) and turn
-    10-90 deg count, unless the frame's path through :data:`RATIO_SUBWINDOWS` sub-windows reaches 180 deg (a fast
-    spin, whose net angle wraps); None with fewer than 5. About 1 for gyr in rad/s (0.25-1.1 on the 20 BROAD
-    trials), 57 for deg/s given as rad/s (14-63 on BROAD: fast translation makes the frame turn with the linear
-    acceleration)."""
+    lower rate, in the body) at the window's ends. Windows whose ends are near rest (|acc| within 10 % of its
+    median, |mag| within 10 %) and turn 10-90 deg count, unless the frame's path through
+    :data:`RATIO_SUBWINDOWS` sub-windows reaches 180 deg (a fast spin, whose net angle wraps); None with fewer
+    than 5. About 1 for gyr in rad/s (0.23-1.0 on the 20 BROAD trials), 57 for deg/s given as rad/s (13-57 on
+    BROAD: fast translation makes the frame turn with the linear acceleration). ``ts``: sample times (T,), s;
+    gyr, acc, mag: (T, 3) in the body frame."""
     if acc is None or mag is None or len(ts) < 3:
         return None
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"), warnings.catch_warnings():
