@@ -47,6 +47,22 @@ def pytest_configure(config):
         logger.addHandler(handler)
         logger.setLevel(logging.DEBUG)
         logger.propagate = False
+    from jaxatt import engine
+
+    original = engine.batch_fn
+
+    def recording_batch_fn(observer, source, reducer, **kw):  # which observer, length and record interval
+        _current["events"].append(
+            (
+                "batch_fn",
+                f"{getattr(observer, 'name', '?')}/{type(source).__name__}/{source.n_steps}/{reducer.every}/"
+                f"{sorted((k, str(v)) for k, v in kw.items())}",
+                0.0,
+            )
+        )
+        return original(observer, source, reducer, **kw)
+
+    engine.batch_fn = recording_batch_fn
 
 
 @pytest.hookimpl(hookwrapper=True)
