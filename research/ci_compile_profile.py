@@ -99,6 +99,16 @@ def summary(pattern: str = "/tmp/compile_events_*.json") -> None:
         repeats += [(sum(sorted(ts)[:-1]), r["id"], n, ts) for n, ts in seen.items() if len(ts) > 1]
     for name, ts in sorted(by_name.items(), key=lambda kv: -sum(kv[1]))[:10]:
         print(f"  {sum(ts):7.1f} s in {len(ts):4d} compiles of {name}")
+    lengths = collections.defaultdict(set)  # observer -> the step counts its engine programs were built for
+    for r in res:
+        for kind, name, _ in r["events"]:
+            if kind == "batch_fn":
+                observer, _source, n_steps = name.split("/[")[0].rsplit("/", 4)[:3]
+                lengths[observer].add(n_steps)
+    print(
+        "distinct step counts per observer (batch_fn):",
+        {o: len(n) for o, n in sorted(lengths.items(), key=lambda kv: -len(kv[1]))[:8]},
+    )
     print("tests compiling a program of the same name more than once (s beyond the first):")
     for extra, test, name, ts in sorted(repeats, reverse=True)[:15]:
         print(f"  {extra:6.1f} s {test} {name} {[round(t, 1) for t in ts]}")
