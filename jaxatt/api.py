@@ -228,7 +228,9 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
     return float(np.median(r)) if len(r) >= 5 else None
 
 
-def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray):
+def _warn_implausible(
+    gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray, from_dt: bool = False
+):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
     widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
     interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no present reading
@@ -258,10 +260,13 @@ def _warn_implausible(gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[
         step = float(np.median(d))
         if step > 1.0:
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
-            notes.append(
-                f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
-                "(convert t to seconds, or give the sample period: dt= / --dt)"
-            )
+            if from_dt:  # the user's own sample period, not timestamps
+                notes.append(f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s")
+            else:
+                notes.append(
+                    f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
+                    "(convert t to seconds, or give the sample period: dt= / --dt)"
+                )
         gaps = d > 10.0 * step
         if gaps.any():
             k = int(np.argmax(d))
@@ -580,7 +585,7 @@ def filter(
     acc_a = _vectors("acc", acc, n, False)
     mag_a = _vectors("mag", mag, n, False)
     ts, per_step = _times(t, dt, n)
-    _warn_implausible(gyr_a, acc_a, mag_a, ts)
+    _warn_implausible(gyr_a, acc_a, mag_a, ts, from_dt=t is None)
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     if entry is not None:

@@ -461,6 +461,17 @@ def test_data_in_the_wrong_units_is_warned_about(change, warning):
         )
 
 
+def test_a_sample_period_in_ms_is_warned_about_as_dt_not_as_timestamps():
+    """dt=10 (a period in ms given as s): the warning names dt, and does not tell the user to give dt."""
+    n = 60
+    gyr, acc, mag = np.tile([0.0, 0.0, 1.0], (n, 1)), np.tile([0, 0, 9.81], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        jaxatt.filter(MY_OBSERVER, gyr, acc, mag, dt=10.0, params=MY_PARAMS)
+    said = [str(w.message) for w in caught if "10 s" in str(w.message)]
+    assert said == ["the sample period dt is 10 s: is it in ms? jaxatt expects s"], [str(w.message) for w in caught]
+
+
 def test_a_degenerate_first_sample_still_starts_on_so3():
     """NLO starts from TRIAD of the first sample; with a magnetometer reading zero (a dead sensor) the start was a
     rank-deficient matrix and the quaternions had norm 0.7 with exit 0. Now every estimate is a unit quaternion
