@@ -150,6 +150,21 @@ def test_npz_errors(tmp_path):
         logs.load_log(p)
 
 
+def test_a_utf16_or_latin1_csv_is_named_as_such(tmp_path):
+    """Excel's "Unicode Text" and PowerShell write UTF-16: the error says so and how to save it, instead of a
+    codec message; other non-UTF-8 bytes are named with their position."""
+    text = "t,gyr_x,gyr_y,gyr_z\n0,0,0,0\n0.01,0,0,0\n"
+    for enc in ("utf-16", "utf-16-le"):
+        p = tmp_path / f"{enc}.csv"
+        p.write_bytes(text.encode(enc))
+        with pytest.raises(ValueError, match=rf"{enc}\.csv: the text is UTF-16 .*save it as UTF-8"):
+            logs.load_log(p)
+    p = tmp_path / "latin.csv"
+    p.write_bytes("t,gyr_x,gyr_y,gyr_z\n0,0,0,0 # 1\u00b0/s\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin\.csv: not UTF-8 text, line 2, byte 31 of the file \(b'\\xb0'\)"):
+        logs.load_log(p)
+
+
 def test_csv_rows_with_more_fields_than_the_header_and_a_byte_order_mark(tmp_path):
     """One extra field on a row shifted its values one column (gyr_y = 999) silently; now it names the line. A
     byte-order mark (Excel's "CSV UTF-8") is skipped, not read into the first column's name."""

@@ -502,9 +502,31 @@ def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
     kind = _kind(path)
     if not Path(path).is_file():
         raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
+    if kind == "csv":
+        with open(path, "rb") as f:
+            head = f.read(4096)
+        # UTF-16 (with or without its byte-order mark; ASCII in UTF-16 is every other byte NUL, valid UTF-8)
+        if head[:2] in (b"\xff\xfe", b"\xfe\xff") or head.count(b"\x00") > len(head) // 4:
+            raise ValueError(
+                f"log {path}: the text is UTF-16 (Excel's 'Unicode Text' or PowerShell's default); save it as "
+                "UTF-8 (or ASCII) CSV"
+            )
     try:
         return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
-    except (OSError, UnicodeDecodeError, EOFError) as e:
+    except UnicodeDecodeError as e:
+        if kind != "csv":
+            raise ValueError(f"log {path}: cannot read it ({e})") from None
+        data = Path(path).read_bytes()  # the position in the file (the decoder's is in its buffer)
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as whole:
+            e = whole
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ValueError(
+            f"log {path}: not UTF-8 text, line {line}, byte {e.start} of the file ({e.object[e.start : e.start + 1]!r}"
+            "); save it as UTF-8 CSV"
+        ) from None
+    except (OSError, EOFError) as e:
         raise ValueError(f"log {path}: cannot read it ({e})") from None
 
 
