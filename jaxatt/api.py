@@ -246,16 +246,22 @@ def _warn_implausible(
         g = np.nanmax(np.abs(gyr)) if np.isfinite(gyr).any() else 0.0
         ratio = gyro_rotation_ratio(gyr, acc, mag, ts)
         if g > 35.0:
-            notes.append(f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s")
+            notes.append(
+                f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s "
+                "(jaxatt filter --gyr-unit deg/s converts it)"
+            )
         elif ratio is not None and ratio > 5.0:
             notes.append(
                 f"the gyro turns {ratio:.3g}x as far as the accelerometer and magnetometer do: is gyr in deg/s "
-                "(57x)? jaxatt expects rad/s"
+                "(57x)? jaxatt expects rad/s (jaxatt filter --gyr-unit deg/s converts it)"
             )
         if acc is not None and np.isfinite(acc).any():
             acc_norm = float(np.nanmedian(np.linalg.norm(acc, axis=-1)))
             if 0.5 < acc_norm < 2.0:
-                notes.append(f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest)")
+                notes.append(
+                    f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest; "
+                    "jaxatt filter --acc-unit g converts it)"
+                )
         d = np.diff(ts)
         step = float(np.median(d))
         if step > 1.0:
@@ -265,7 +271,8 @@ def _warn_implausible(
             else:
                 notes.append(
                     f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
-                    "(convert t to seconds, or give the sample period: dt= / --dt)"
+                    f"(convert t to seconds, e.g. jaxatt filter --time-unit {unit}, or give the sample period: dt= / "
+                    "--dt)"
                 )
         gaps = d > 10.0 * step
         if gaps.any():

@@ -15,6 +15,7 @@ results and writes the files (the others print only errors and progress on stder
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import signal
@@ -211,6 +212,18 @@ def _parser() -> argparse.ArgumentParser:
         type=_positive,
         default=None,
         help="sample period, s (default: the log's timestamps; a log without t needs it)",
+    )
+    fp.add_argument(
+        "--gyr-unit", choices=GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
+    )
+    fp.add_argument(
+        "--acc-unit", choices=ACC_UNITS, default="m/s^2", help="unit of the log's accelerometer columns (default m/s^2)"
+    )
+    fp.add_argument(
+        "--time-unit",
+        choices=TIME_UNITS,
+        default="s",
+        help="unit of the log's t column (default s); the estimates' t is written in s",
     )
     fp.add_argument("--float32", action="store_true", help="run the filter in float32")
     fp.add_argument(
@@ -914,6 +927,11 @@ def _load_any_log(path: str, dt: Optional[float] = None):
         return samples, None
 
 
+#: ``jaxatt filter``'s unit flags: the factor to the units jaxatt works in (rad/s, m/s^2, s)
+GYR_UNITS = {"rad/s": 1.0, "deg/s": math.pi / 180.0}
+ACC_UNITS = {"m/s^2": 1.0, "g": 9.80665}
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
 FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
 
@@ -949,6 +967,17 @@ def _observer_and_params(args):
     return args.observer, args.gains
 
 
+def _in_si_units(samples, args):
+    """The log in rad/s, m/s^2 and s from ``--gyr-unit``, ``--acc-unit`` and ``--time-unit`` (mag is left in
+    its own unit)."""
+    scale = lambda a, f: a if a is None or f == 1.0 else np.asarray(a, np.float64) * f  # noqa: E731
+    return samples._replace(
+        t=scale(samples.t, TIME_UNITS[args.time_unit]),
+        gyr=scale(samples.gyr, GYR_UNITS[args.gyr_unit]),
+        acc=scale(samples.acc, ACC_UNITS[args.acc_unit]),
+    )
+
+
 def _filter(args) -> int:
     from . import api, io
 
@@ -960,7 +989,10 @@ def _filter(args) -> int:
     observer, params = _observer_and_params(args)
     from .progress import Heartbeat
 
+    if args.dt is not None and args.time_unit != "s":
+        raise ValueError(f"--time-unit {args.time_unit} and --dt: --dt replaces the log's t, give one of them")
     samples, rate = _load_any_log(args.log, args.dt)
+    samples = _in_si_units(samples, args)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
     if args.dt is not None and len(samples.t) > 1:
         d = np.diff(np.asarray(samples.t, float))

@@ -131,6 +131,40 @@ def jax_to_np(s):
     return ImuSample(*(None if v is None else np.asarray(v) for v in s))
 
 
+def test_filter_unit_flags_read_a_log_in_deg_per_s_g_and_ms(tmp_path, capsys):
+    """A logger's deg/s, g and ms timestamps, read with --gyr-unit deg/s --acc-unit g --time-unit ms, give the
+    estimates of the same log in rad/s, m/s^2 and s (t written in s), without the wrong-unit warnings."""
+    from jaxatt.data import logs
+
+    samples, _ = _sim_log()
+    si, raw = tmp_path / "si.csv", tmp_path / "raw.csv"
+    logs.save_log(si, samples)
+    logs.save_log(
+        raw,
+        samples._replace(t=samples.t * 1e3, gyr=np.rad2deg(samples.gyr), acc=np.asarray(samples.acc) / 9.80665),
+    )
+    out_si, out_raw = tmp_path / "est_si.csv", tmp_path / "est_raw.csv"
+    assert cli.main(["filter", "--log", str(si), "--observer", "mahony", "--out", str(out_si)]) == 0
+    capsys.readouterr()
+    flags = ["--gyr-unit", "deg/s", "--acc-unit", "g", "--time-unit", "ms"]
+    assert cli.main(["filter", "--log", str(raw), "--observer", "mahony", *flags, "--out", str(out_raw)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    a, b = (np.genfromtxt(p, delimiter=",", names=True) for p in (out_si, out_raw))
+    np.testing.assert_allclose(b["t"], a["t"], rtol=1e-12, atol=1e-12)
+    for c in ("qw", "qx", "qy", "qz"):
+        np.testing.assert_allclose(b[c], a[c], atol=1e-9)
+    # without the flags the same log is warned about, each with the flag that converts it
+    assert cli.main(["filter", "--log", str(raw), "--observer", "mahony", "--out", str(tmp_path / "e3.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "--acc-unit g converts it" in err and "--time-unit ms" in err, err
+    # --time-unit with --dt: one clear line, exit 2, before computing
+    assert (
+        cli.main(["filter", "--log", str(raw), "--time-unit", "ms", "--dt", "0.01", "--out", str(tmp_path / "e4.csv")])
+        == 2
+    )
+    assert "--time-unit ms and --dt" in capsys.readouterr().err
+
+
 def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     from jaxatt.data import logs
 
