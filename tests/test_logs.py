@@ -157,7 +157,7 @@ def test_a_utf16_or_latin1_csv_is_named_as_such(tmp_path):
     for enc in ("utf-16", "utf-16-le"):
         p = tmp_path / f"{enc}.csv"
         p.write_bytes(text.encode(enc))
-        with pytest.raises(ValueError, match=rf"{enc}\.csv: the text is UTF-16 .*save it as UTF-8"):
+        with pytest.raises(ValueError, match=rf"{enc}\.csv: the text looks like UTF-16 .*save it as UTF-8"):
             logs.load_log(p)
     p = tmp_path / "latin.csv"
     p.write_bytes("t,gyr_x,gyr_y,gyr_z\n0,0,0,0 # 1\u00b0/s\n".encode("latin-1"))

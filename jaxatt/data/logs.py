@@ -508,8 +508,8 @@ def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
         # UTF-16 (with or without its byte-order mark; ASCII in UTF-16 is every other byte NUL, valid UTF-8)
         if head[:2] in (b"\xff\xfe", b"\xfe\xff") or head.count(b"\x00") > len(head) // 4:
             raise ValueError(
-                f"log {path}: the text is UTF-16 (Excel's 'Unicode Text' or PowerShell's default); save it as "
-                "UTF-8 (or ASCII) CSV"
+                f"log {path}: the text looks like UTF-16 (a byte-order mark or NUL bytes; Excel's 'Unicode Text', "
+                "PowerShell's default); save it as UTF-8 (or ASCII) CSV"
             )
     try:
         return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
