@@ -970,7 +970,13 @@ def _observer_and_params(args):
 def _in_si_units(samples, args):
     """The log in rad/s, m/s^2 and s from ``--gyr-unit``, ``--acc-unit`` and ``--time-unit`` (mag is left in
     its own unit)."""
-    scale = lambda a, f: a if a is None or f == 1.0 else np.asarray(a, np.float64) * f  # noqa: E731
+
+    def scale(a, f):  # in the log's own precision (a float32 BROAD trial stays float32)
+        if a is None or f == 1.0:
+            return a
+        a = np.asarray(a)
+        return a * np.asarray(f, a.dtype if a.dtype.kind == "f" else np.float64)
+
     return samples._replace(
         t=scale(samples.t, TIME_UNITS[args.time_unit]),
         gyr=scale(samples.gyr, GYR_UNITS[args.gyr_unit]),

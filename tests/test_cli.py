@@ -153,7 +153,7 @@ def test_filter_unit_flags_read_a_log_in_deg_per_s_g_and_ms(tmp_path, capsys):
     np.testing.assert_allclose(b["t"], a["t"], rtol=1e-12, atol=1e-12)
     for c in ("qw", "qx", "qy", "qz"):
         np.testing.assert_allclose(b[c], a[c], atol=1e-9)
-    # without the flags the same log is warned about, each with the flag that converts it
+    # without the flags the same log is warned about (its g and ms here), with the flag that converts each
     assert cli.main(["filter", "--log", str(raw), "--observer", "mahony", "--out", str(tmp_path / "e3.csv")]) == 0
     err = capsys.readouterr().err
     assert "--acc-unit g converts it" in err and "--time-unit ms" in err, err
