@@ -360,6 +360,17 @@ def synthetic_trial(name, n, rng, rate=100.0):
     return broad.Trial(name, s, qs, np.arange(n) > n // 10, rate)
 
 
+def test_a_batch_longer_than_a_block_is_padded_to_whole_blocks():
+    """T_max - 1 becomes a multiple of engine.BLOCK (one copy of the step in the scan); the padding is masked."""
+    rng = np.random.default_rng(3)
+    trials = [synthetic_trial("97_c", 1500, rng), synthetic_trial("96_d", 700, rng)]
+    pad = broad.pad_trials(trials)
+    assert pad.samples.t.shape == (2, 1 + 2 * engine.BLOCK) and list(pad.lengths) == [1500, 700]
+    assert pad.mask.sum() == 2200 and not pad.movement[:, 1500:].any()
+    np.testing.assert_array_equal(pad.samples.gyr[0, :1500], trials[0].samples.gyr)
+    assert broad.pad_trials(trials[1:]).samples.t.shape == (1, 700)  # up to one block: the longest trial
+
+
 def test_padding_alignment_and_differentiable_batch_metric():
     rng = np.random.default_rng(7)
     trials = [synthetic_trial("99_a", 300, rng), synthetic_trial("98_b", 420, rng, rate=120.0)]

@@ -524,12 +524,17 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
     """Stack trials of different lengths into (B, T_max, ...) arrays for ``vmap``.
 
     Padding repeats each trial's last sample (finite data, so no NaN enters a scan or a gradient); ``mask`` is
-    False there and ``movement`` is False there. Time continues at the trial's rate on the padding.
+    False there and ``movement`` is False there. Time continues at the trial's rate on the padding. A batch
+    longer than one :data:`jaxatt.engine.BLOCK` of steps is padded to a whole number of blocks (T_max - 1 a
+    multiple of BLOCK): the compiled scan then holds one copy of the observer's step, not a second one for a
+    partial last block (at most BLOCK - 1 more padded samples per trial).
     """
     if not trials:
         raise ValueError("no trials to pad")
     lengths = np.array([len(tr.samples.t) for tr in trials], int)
     tmax = int(lengths.max())
+    if tmax - 1 > engine.BLOCK:
+        tmax = 1 + engine.BLOCK * -(-(tmax - 1) // engine.BLOCK)
 
     def pad(a, n):
         a = np.asarray(a)
