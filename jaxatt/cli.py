@@ -31,7 +31,10 @@ from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
 
-SIMULATE_OBSERVERS = ("batista-ges", "batista-so3", "complementary")
+#: The registered filters for recorded data that ``simulate`` runs on a simulated IMU (:mod:`jaxatt.studies.ahrs`;
+#: kept here as names so that ``--help`` imports no JAX; tests check it against the registry).
+AHRS_FILTERS = ("madgwick", "mahony", "mekf", "nlo", "nlio-fg", "nlio", "robust", "vqf", "vqf-6d")
+SIMULATE_OBSERVERS = ("batista-ges", "batista-so3", "complementary") + AHRS_FILTERS
 PAPER_STUDIES = ("batista-ges", "batista-so3", "nlio-case1", "nlio-case2", "nlio-case3", "nlio-case4", "nlio-simb")
 TUNABLE_STUDIES = ("batista-ges", "batista-so3", "complementary", "nlio-case1", "nlio-case2", "nlio-case3")
 SCENARIOS = ("rotating", "switching", "constant", "two-constant", "body-fixed")
@@ -250,11 +253,14 @@ def _parser() -> argparse.ArgumentParser:
         "--observer",
         choices=SIMULATE_OBSERVERS,
         required=True,
-        help="a paper's observer on its scenario (the AHRS filters' Monte Carlo: jaxatt.monte_carlo in Python)",
+        help="a paper's observer on its scenario, or an AHRS filter (madgwick, mahony, vqf, robust, ...) with its "
+        "shipped gains on a simulated IMU (ENU; jaxatt.monte_carlo in Python)",
     )
     g = sp.add_argument_group("batista-ges / batista-so3 (Section IV / 4 platform)")
     g.add_argument("--trajectory", choices=["slow", "aggressive"], default=None)
-    g.add_argument("--rate-scale", type=_nonneg, default=None, help="multiplies the angular-velocity profile")
+    g.add_argument(
+        "--rate-scale", type=_nonneg, default=None, help="multiplies the angular-velocity profile (AHRS filters too)"
+    )
     g.add_argument("--latitude", type=_latitude, default=None, help="latitude in degrees (north positive)")
     g.add_argument(
         "--reference",
@@ -263,7 +269,12 @@ def _parser() -> argparse.ArgumentParser:
         help="inertial vector measured by the vector sensor, X,Y,Z in nT, NED (default IGRF-11 Lisbon)",
     )
     g.add_argument("--gyro-arw", type=_nonneg, default=None, help="gyro angle random walk, deg/h/sqrt(Hz) (default 4)")
-    g.add_argument("--mag-noise", type=_nonneg, default=None, help="vector-sensor noise std, nT (default 150)")
+    g.add_argument(
+        "--mag-noise",
+        type=_nonneg,
+        default=None,
+        help="vector-sensor (magnetometer) noise std, nT (default 150; AHRS filters 300)",
+    )
     g.add_argument("--r0", type=_floats(9), default=None, help="initial R^ (9 numbers, row-major)")
     g.add_argument("--x2-0", type=_floats(3), default=None, help="batista-ges: initial x2^, nT/s")
     g.add_argument("--v0", type=_floats(3), default=None, help="batista-so3: initial v^, nT^2 rad/s")
@@ -278,14 +289,34 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--form", choices=["matrix", "quaternion"], default=None, help="eq. (10) or eq. (18)")
     c.add_argument("--gain", type=_positive, default=None, help="gain k_i = l_j of every measurement, 1/s (0.6)")
     c.add_argument("--k-i", type=_nonneg, default=None, help="gyro-bias integral gain, 1/s (0 = no bias estimate)")
-    c.add_argument("--gyro-noise", type=_nonneg, default=None, help="gyro white noise per sample, rad/s")
+    c.add_argument(
+        "--gyro-noise",
+        type=_nonneg,
+        default=None,
+        help="gyro white noise per sample, rad/s (AHRS filters too, default 0.001)",
+    )
     c.add_argument("--vector-noise", type=_nonneg, default=None, help="noise per component of the unit vectors")
-    s = sp.add_argument_group("both")
-    s.add_argument("--gyro-bias", type=_floats(3), default=None, help="gyro bias X,Y,Z, rad/s")
+    a = sp.add_argument_group(
+        "AHRS filters (madgwick, mahony, mekf, nlo, nlio, nlio-fg, robust, vqf, vqf-6d)",
+        "a simulated IMU in ENU (jaxatt.api.ahrs_scenario): also --gyro-noise, --mag-noise (nT), --rate-scale and "
+        "the flags below; each filter starts from the first sample, as on a recording",
+    )
+    a.add_argument(
+        "--acc-noise", type=_nonneg, default=None, help="accelerometer noise per sample, m/s^2 (default 0.05)"
+    )
+    s = sp.add_argument_group("all")
+    s.add_argument(
+        "--gyro-bias", type=_floats(3), default=None, help="gyro bias X,Y,Z, rad/s (AHRS filters: 0.01,-0.01,0.005)"
+    )
     s.add_argument("--noise-scale", type=_nonneg, default=None, help="multiplies all noise (0 = noise-free)")
     s.add_argument("--dt", type=_positive, default=None, help="sample period, s")
     s.add_argument("--window-start", type=_nonneg, default=None, help="start of the steady-state window, s")
-    s.add_argument("--r0-euler", type=_floats(3), default=None, help="initial R^ as ZYX roll,pitch,yaw in degrees")
+    s.add_argument(
+        "--r0-euler",
+        type=_floats(3),
+        default=None,
+        help="initial R^ as ZYX roll,pitch,yaw in degrees (not the AHRS filters: they start from the first sample)",
+    )
     _mc_flags(sp)
 
     tp = sub.add_parser("tune", help="tune a study's gains by gradient descent through the Monte Carlo scan")
@@ -505,12 +536,54 @@ def _simulate(args) -> int:
     from . import so3, studies
 
     name = args.observer
-    study = studies.get(name)
+    study = studies.get("ahrs" if name in AHRS_FILTERS else name)
     r0_euler = getattr(args, "r0_euler", None)
-    if name == "complementary":
+    if name in AHRS_FILTERS:
         _refuse(
             args,
             [
+                "trajectory",
+                "latitude",
+                "reference",
+                "gyro_arw",
+                "r0",
+                "x1_init",
+                "m_init",
+                "integrator",
+                "x2_0",
+                "v0",
+                "epsilon",
+                "scenario",
+                "form",
+                "gain",
+                "k_i",
+                "vector_noise",
+                "r0_euler",
+                "hold",
+            ],
+            name,
+        )
+        kw = _given(
+            args,
+            {
+                "gyro_noise": "gyro_noise_std",
+                "acc_noise": "acc_noise_std",
+                "rate_scale": "rate_scale",
+                "noise_scale": "noise_scale",
+                "gyro_bias": "gyro_bias",
+                "dt": "dt",
+                "window_start": "window_start",
+            },
+        )
+        if args.mag_noise is not None:
+            kw["mag_noise_std"] = args.mag_noise * 1e-3  # nT -> uT, the scenario's unit
+        kw["observer"] = name
+        title = f"{name} simulate (AHRS)"
+    elif name == "complementary":
+        _refuse(
+            args,
+            [
+                "acc_noise",
                 "trajectory",
                 "rate_scale",
                 "latitude",
@@ -549,7 +622,7 @@ def _simulate(args) -> int:
             kw["r_hat_0_euler_deg"] = r0_euler
         title = f"complementary simulate ({kw.get('scenario', 'rotating')})"
     else:
-        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise"], name)
+        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "acc_noise"], name)
         kw = _given(
             args,
             {

@@ -173,6 +173,13 @@ BAD_INPUT = [
     (["simulate", "--observer", "batista-so3", "--x2-0", "1,2,3", *MC], r"does not apply"),
     (["simulate", "--observer", "batista-ges", "--window-start", "50", "--duration", "10", "--runs", "1"], r"window"),
     (["simulate", "--observer", "batista-ges", "--latitude", "95", *MC], r"argument --latitude"),
+    (["simulate", "--observer", "mahony", "--hold", "zoh", *MC], r"--hold does not apply to mahony"),
+    (["simulate", "--observer", "robust", "--latitude", "45", *MC], r"--latitude does not apply to robust"),
+    (["simulate", "--observer", "vqf", "--r0-euler", "1,2,3", *MC], r"--r0-euler does not apply to vqf"),
+    (["simulate", "--observer", "batista-ges", "--acc-noise", "0.1", *MC], r"--acc-noise does not apply"),
+    (["simulate", "--observer", "madgwick", "--acc-noise", "-1", *MC], r"argument --acc-noise"),
+    (["simulate", "--observer", "madgwick", "--window-start", "9", "--duration", "3", "--runs", "1"], r"window"),
+    (["simulate", "--observer", "madgwick", *MC, "--plot", "{d}/c.png"], r"--plot: ahrs has no figure"),
     # tune / evaluate
     (["tune", "--experiment", "batista-so3", "--out", "{d}/folder", "--steps", "1"], r"--out .*folder: is a folder"),
     (["tune", "--experiment", "batista-so3", "--out", "/proc/g.json", "--steps", "1"], r"--out /proc/g\.json"),

@@ -660,3 +660,32 @@ def test_tune_resume_refuses_another_set_up(tmp_path, capsys):
             quiet=True,
             config={"duration": 1.0, "gyro_noise_std": 0.01},
         )
+
+
+def test_simulate_an_ahrs_filter_is_jaxatt_monte_carlo_on_the_same_imu(tmp_path):
+    """``jaxatt simulate --observer <AHRS filter>`` (the ahrs study) runs the Monte Carlo of jaxatt.monte_carlo on
+    jaxatt.api.ahrs_scenario with the flags' noise (--mag-noise in nT, the scenario's field in uT): the same
+    per-run metrics, run for run. Its filters are the registry's recorded-data observers but complementary, and
+    its defaults are ahrs_scenario's."""
+    import inspect
+
+    from jaxatt.observers import registry
+    from jaxatt.studies import ahrs
+
+    assert cli.AHRS_FILTERS == ahrs.filters()
+    assert set(ahrs.filters()) | {"complementary"} == set(registry.names(recorded=True))
+    defaults = {k: v.default for k, v in inspect.signature(jaxatt.api.ahrs_scenario).parameters.items()}
+    for f in ("gyro_noise_std", "acc_noise_std", "mag_noise_std", "gyro_bias", "rate_scale"):
+        assert ahrs.Config._field_defaults[f] == defaults[f], f
+    out = tmp_path / "mahony.json"
+    flags = ["--mag-noise", "500", "--acc-noise", "0.1", "--gyro-bias=0.02,0,0", "--rate-scale", "2"]
+    argv = ["simulate", "--observer", "mahony", "--runs", "5", "--duration", "3", "--dt", "0.02", "--quiet"]
+    assert cli.main([*argv, *flags, "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert d["study"] == "ahrs" and d["complete"] and d["runs_done"] == 5
+    assert d["config"]["observer"] == "mahony" and d["config"]["mag_noise_std"] == pytest.approx(0.5)
+    scn = jaxatt.api.ahrs_scenario(mag_noise_std=0.5, acc_noise_std=0.1, gyro_bias=(0.02, 0.0, 0.0), rate_scale=2.0)
+    ref = jaxatt.monte_carlo("mahony", runs=5, duration=3.0, dt=0.02, scenario=scn)
+    for k in ("mean_angle_error_deg", "final_angle_error_deg", "std_roll", "std_yaw", "std_bias"):
+        np.testing.assert_allclose(d["metrics"][k]["per_run"], ref.per_run[k], rtol=1e-12, atol=0, err_msg=k)
+    assert_provenance(d["environment"])

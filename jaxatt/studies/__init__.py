@@ -4,6 +4,7 @@ scenario, compared observers, errors, published numbers and tables; :func:`get` 
 * ``batista-ges``, ``batista-so3``: Section IV / 4 of the two Batista et al. (2019) papers (NED, nT).
 * ``nlio-case1`` ... ``nlio-case4``, ``nlio-simb``: Section 5 of the sensors2020 NLIO paper.
 * ``complementary``: Trumpf et al. (2012) on the vector-measurement scenarios of :mod:`jaxatt.sim.references`.
+* ``ahrs``: a registered AHRS filter (Madgwick, Mahony, VQF, the robust AHRS, ...) on a simulated IMU (ENU).
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ _MODULES = {
     "nlio-case4": "nlio",
     "nlio-simb": "nlio",
     "complementary": "complementary",
+    "ahrs": "ahrs",
 }
 NAMES = tuple(_MODULES)
 #: The studies with published numbers (``jaxatt reproduce``).
-PAPER_STUDIES = tuple(n for n in NAMES if n != "complementary")
+PAPER_STUDIES = tuple(n for n in NAMES if n not in ("complementary", "ahrs"))
 #: The studies ``jaxatt tune`` can tune (their tuned observer has declared gains and the study a loss).
 TUNABLE = ("batista-ges", "batista-so3", "complementary", "nlio-case1", "nlio-case2", "nlio-case3")
 
