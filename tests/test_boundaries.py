@@ -316,6 +316,11 @@ NON_FINITE = [
         ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "3", "--quiet", "--noise-scale", "1e30"],
         r"run 0.*t = ",
     ),
+    (  # an AHRS filter's Monte Carlo (the program of test_cli's mahony simulate: the same runs, length and rate)
+        ["simulate", "--observer", "mahony", "--runs", "5", "--duration", "3", "--dt", "0.02", "--quiet"]
+        + ["--noise-scale", "1e300"],
+        r"mahony: run 0.*t = ",
+    ),
     (["filter", "--log", "{d}/huge_gyr.csv", "--observer", "madgwick", "--out", "{d}/est.csv"], r"sample \d+ \(t = "),
     (["filter", "--log", "{d}/huge_gyr.csv", "--observer", "robust", "--out", "{d}/est.csv"], r"sample \d+ \(t = "),
 ]
