@@ -304,6 +304,11 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument(
         "--acc-noise", type=_nonneg, default=None, help="accelerometer noise per sample, m/s^2 (default 0.05)"
     )
+    a.add_argument(
+        "--gains",
+        default=None,
+        help="a gains file of the filter (jaxatt broad-tune, jaxatt.fit) instead of its shipped gains",
+    )
     s = sp.add_argument_group("all")
     s.add_argument(
         "--gyro-bias", type=_floats(3), default=None, help="gyro bias X,Y,Z, rad/s (AHRS filters: 0.01,-0.01,0.005)"
@@ -538,6 +543,7 @@ def _simulate(args) -> int:
     name = args.observer
     study = studies.get("ahrs" if name in AHRS_FILTERS else name)
     r0_euler = getattr(args, "r0_euler", None)
+    observers, extra = None, None  # the study's own observers and gains unless --gains replaces them
     if name in AHRS_FILTERS:
         _refuse(
             args,
@@ -579,11 +585,20 @@ def _simulate(args) -> int:
             kw["mag_noise_std"] = args.mag_noise * 1e-3  # nT -> uT, the scenario's unit
         kw["observer"] = name
         title = f"{name} simulate (AHRS)"
+        if args.gains is not None:
+            from .fitting import gainsfile
+            from .observers import registry
+
+            entry = registry.get(name)
+            gains = gainsfile.read_params(args.gains, entry, base=entry.params(dtype=studies.base.paper_dtype()))
+            observers = {name: (registry.recorded_observer(entry), gains)}
+            extra = {"gains_file": args.gains}
     elif name == "complementary":
         _refuse(
             args,
             [
                 "acc_noise",
+                "gains",
                 "trajectory",
                 "rate_scale",
                 "latitude",
@@ -622,7 +637,7 @@ def _simulate(args) -> int:
             kw["r_hat_0_euler_deg"] = r0_euler
         title = f"complementary simulate ({kw.get('scenario', 'rotating')})"
     else:
-        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "acc_noise"], name)
+        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "acc_noise", "gains"], name)
         kw = _given(
             args,
             {
@@ -661,6 +676,8 @@ def _simulate(args) -> int:
             quiet=args.quiet,
             progress=_progress(args),
             title=title,
+            observers=observers,
+            extra=extra,
             resume=args.resume,
         )
     return _finish_study(payload)

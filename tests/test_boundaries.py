@@ -177,6 +177,8 @@ BAD_INPUT = [
     (["simulate", "--observer", "robust", "--latitude", "45", *MC], r"--latitude does not apply to robust"),
     (["simulate", "--observer", "vqf", "--r0-euler", "1,2,3", *MC], r"--r0-euler does not apply to vqf"),
     (["simulate", "--observer", "batista-ges", "--acc-noise", "0.1", *MC], r"--acc-noise does not apply"),
+    (["simulate", "--observer", "complementary", "--gains", "{d}/keep.json", *MC], r"--gains does not apply"),
+    (["simulate", "--observer", "robust", "--gains", "{d}/keep.json", *MC], r"keep\.json"),
     (["simulate", "--observer", "madgwick", "--acc-noise", "-1", *MC], r"argument --acc-noise"),
     (["simulate", "--observer", "madgwick", "--window-start", "9", "--duration", "3", "--runs", "1"], r"window"),
     (["simulate", "--observer", "madgwick", *MC, "--plot", "{d}/c.png"], r"--plot: ahrs has no figure"),

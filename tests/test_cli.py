@@ -689,3 +689,20 @@ def test_simulate_an_ahrs_filter_is_jaxatt_monte_carlo_on_the_same_imu(tmp_path)
     for k in ("mean_angle_error_deg", "final_angle_error_deg", "std_roll", "std_yaw", "std_bias"):
         np.testing.assert_allclose(d["metrics"][k]["per_run"], ref.per_run[k], rtol=1e-12, atol=0, err_msg=k)
     assert_provenance(d["environment"])
+    # --gains: a gains file of the filter replaces its shipped gains (the same program: the gains are arguments)
+    from jaxatt.fitting import gainsfile
+
+    entry = registry.get("mahony")
+    tuned = entry.params()._replace(kp=entry.params().kp * 4.0)
+    gains = tmp_path / "mahony_gains.json"
+    gainsfile.write(gains, observer="mahony", params=tuned, gains=entry.gains, status="done")
+    out2 = tmp_path / "mahony_tuned.json"
+    assert cli.main([*argv, *flags, "--gains", str(gains), "--json", str(out2)]) == 0
+    d2 = json.loads(out2.read_text())
+    assert d2["gains_file"] == str(gains)
+    ref2 = jaxatt.monte_carlo("mahony", str(gains), runs=5, duration=3.0, dt=0.02, scenario=scn)
+    np.testing.assert_allclose(
+        d2["metrics"]["mean_angle_error_deg"]["per_run"], ref2.per_run["mean_angle_error_deg"], rtol=1e-12, atol=0
+    )
+    assert d2["metrics"]["mean_angle_error_deg"]["mean"] != d["metrics"]["mean_angle_error_deg"]["mean"]
+    assert cli.main([*argv, "--gains", str(gains), "--observer", "madgwick"]) == 2  # gains of another filter
