@@ -329,31 +329,21 @@ def _tree_where(c, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)
 
 
-def _parts(v):
-    """The entries of a short vector as scalars, split in one operation (reverse mode then gathers their
-    cotangents with one concatenate instead of a zero-padded add per entry: a VQF gradient compiles in a
-    fraction of the time). The values are exactly ``v[0], v[1], ...``."""
-    return [x.reshape(()) for x in jnp.split(v, v.shape[0])]
-
-
 def _qmul(q1, q2):
     """Hamilton product (``VQF::quatMultiply``)."""
-    a0, a1, a2, a3 = _parts(q1)
-    b0, b1, b2, b3 = _parts(q2)
-    w = a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3
-    x = a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2
-    y = a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1
-    z = a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0
+    w = q1[0] * q2[0] - q1[1] * q2[1] - q1[2] * q2[2] - q1[3] * q2[3]
+    x = q1[0] * q2[1] + q1[1] * q2[0] + q1[2] * q2[3] - q1[3] * q2[2]
+    y = q1[0] * q2[2] - q1[1] * q2[3] + q1[2] * q2[0] + q1[3] * q2[1]
+    z = q1[0] * q2[3] + q1[1] * q2[2] - q1[2] * q2[1] + q1[3] * q2[0]
     return jnp.stack([w, x, y, z])
 
 
 def _qrot(q, v):
     """q v q* (``VQF::quatRotate``)."""
-    q0, q1, q2, q3 = _parts(q)
-    v0, v1, v2 = _parts(v)
-    x = (1 - 2 * q2 * q2 - 2 * q3 * q3) * v0 + 2 * v1 * (q2 * q1 - q0 * q3) + 2 * v2 * (q0 * q2 + q3 * q1)
-    y = 2 * v0 * (q0 * q3 + q2 * q1) + v1 * (1 - 2 * q1 * q1 - 2 * q3 * q3) + 2 * v2 * (q2 * q3 - q1 * q0)
-    z = 2 * v0 * (q3 * q1 - q0 * q2) + 2 * v1 * (q0 * q1 + q3 * q2) + v2 * (1 - 2 * q1 * q1 - 2 * q2 * q2)
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    x = (1 - 2 * q2 * q2 - 2 * q3 * q3) * v[0] + 2 * v[1] * (q2 * q1 - q0 * q3) + 2 * v[2] * (q0 * q2 + q3 * q1)
+    y = 2 * v[0] * (q0 * q3 + q2 * q1) + v[1] * (1 - 2 * q1 * q1 - 2 * q3 * q3) + 2 * v[2] * (q2 * q3 - q1 * q0)
+    z = 2 * v[0] * (q3 * q1 - q0 * q2) + 2 * v[1] * (q0 * q1 + q3 * q2) + v[2] * (1 - 2 * q1 * q1 - 2 * q2 * q2)
     return jnp.stack([x, y, z])
 
 
@@ -361,15 +351,13 @@ def _apply_delta(q, delta):
     """(cos delta/2, 0, 0, sin delta/2) (x) q (``VQF::quatApplyDelta``)."""
     c = jnp.cos(delta / 2)
     s = jnp.sin(delta / 2)
-    q0, q1, q2, q3 = _parts(q)
-    return jnp.stack([c * q0 - s * q3, c * q1 - s * q2, c * q2 + s * q1, c * q3 + s * q0])
+    return jnp.stack([c * q[0] - s * q[3], c * q[1] - s * q[2], c * q[2] + s * q[1], c * q[3] + s * q[0]])
 
 
 def _sumsq(v):
-    parts = _parts(v)
-    out = parts[0] * parts[0]
-    for x in parts[1:]:
-        out = out + x * x
+    out = v[0] * v[0]
+    for i in range(1, v.shape[0]):
+        out = out + v[i] * v[i]
     return out
 
 
@@ -389,14 +377,12 @@ def _normalize(v):
 
 def _mm(a, b):
     """3x3 product, each entry summed in the C++ order."""
-    a0, a1, a2 = jnp.split(a, 3, axis=1)
-    b0, b1, b2 = jnp.split(b, 3, axis=0)
-    return a0 * b0 + a1 * b1 + a2 * b2
+    return a[:, 0:1] * b[0:1, :] + a[:, 1:2] * b[1:2, :] + a[:, 2:3] * b[2:3, :]
 
 
 def _inv3(m):
     """Adjugate inverse (``VQF::matrix3Inv``); zeros when |det| <= eps."""
-    a, b, c, d, e, f, g, h, i = _parts(m.reshape(9))
+    a, b, c, d, e, f, g, h, i = (m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2], m[2, 0], m[2, 1], m[2, 2])
     A = e * i - f * h
     D = c * h - b * i
     G = b * f - c * e
@@ -450,12 +436,9 @@ def _filter_vec(x, tau, ts, b, a, st: Lp):
     total1 = st.total + x
     mean = total1 / n1
     now_ready = n1 * ts >= tau
-    b0, b1, b2 = _parts(b)
-    a0, a1 = _parts(a)
-    z0, z1 = (zi.reshape(zi.shape[1:]) for zi in jnp.split(st.z, 2))
-    z_init = jnp.stack([mean * (1 - b0), mean * (b2 - a1)])
-    y_run = b0 * x + z0
-    z_run = jnp.stack([b1 * x - a0 * y_run + z1, b2 * x - a1 * y_run])
+    z_init = jnp.stack([mean * (1 - b[0]), mean * (b[2] - a[1])])
+    y_run = b[0] * x + st.z[0]
+    z_run = jnp.stack([b[1] * x - a[0] * y_run + st.z[1], b[2] * x - a[1] * y_run])
     y = jnp.where(st.ready, y_run, mean)
     z = jnp.where(st.ready, z_run, jnp.where(now_ready, z_init, st.z))
     new = Lp(
@@ -510,8 +493,8 @@ def _update_gyr(p: Params, s: State, gyr, ts) -> State:
     th2 = (p.rest_th_gyr * _DEG) ** 2
     # "rest is kept" weight: sq_dev < th^2 and every |gyr_lp_i| <= bias_clip
     keep = 1 - _gate_ge(sq_dev - th2, th2, sm)
-    for gi in _parts(gyr_lp):
-        keep = keep * (1 - _gate(jnp.abs(gi) - bias_clip, bias_clip, sm))
+    for i in range(3):
+        keep = keep * (1 - _gate(jnp.abs(gyr_lp[i]) - bias_clip, bias_clip, sm))
     s_rest = s._replace(
         rest_gyr_lp=lp,
         rest_last_gyr_lp=gyr_lp,
@@ -528,8 +511,7 @@ def _update_gyr(p: Params, s: State, gyr, ts) -> State:
     gn_s = jnp.where(moving, gn, 1.0)
     c = jnp.cos(angle / 2)
     sn = jnp.sin(angle / 2) / gn_s
-    g0, g1, g2 = _parts(g)
-    dq = jnp.stack([c, sn * g0, sn * g1, sn * g2])
+    dq = jnp.stack([c, sn * g[0], sn * g[1], sn * g[2]])
     q = _normalize(_qmul(s.gyr_quat, dq))
     return s._replace(gyr_quat=jnp.where(moving, q, s.gyr_quat))
 
@@ -571,15 +553,14 @@ def _update_acc(p: Params, s: State, acc, ts) -> State:
     last_acc_lp, alp = _filter_vec(acc_i, p.tau_acc, ts, b, a, s.acc_lp)
     # to the 6D earth frame, normalised
     acc_e = _normalize(_qrot(s.acc_quat, last_acc_lp))
-    acc_e0, acc_e1, acc_e2 = _parts(acc_e)
     # inclination correction
-    qw2 = (acc_e2 + 1) / 2
+    qw2 = (acc_e[2] + 1) / 2
     qw_pos = qw2 > 0
     q_w = jnp.where(qw_pos, jnp.sqrt(jnp.where(qw_pos, qw2, 1.0)), 0.0)
     big = q_w > 1e-6
     q_ws = jnp.where(big, q_w, 1.0)
     zero = jnp.zeros((), dtype)
-    corr = jnp.stack([q_w, 0.5 * acc_e1 / q_ws, -0.5 * acc_e0 / q_ws, zero])
+    corr = jnp.stack([q_w, 0.5 * acc_e[1] / q_ws, -0.5 * acc_e[0] / q_ws, zero])
     corr = jnp.where(big, corr, jnp.array([0.0, 1.0, 0.0, 0.0], dtype))
     acc_quat = _normalize(_qmul(corr, s.acc_quat))
     s = s._replace(acc_lp=alp, last_acc_lp=last_acc_lp, acc_quat=acc_quat)
@@ -587,23 +568,23 @@ def _update_acc(p: Params, s: State, acc, ts) -> State:
     # bias estimation (Section 4)
     bias_clip = p.bias_clip * _DEG
     bias = s.bias
-    w6, x6, y6, z6 = _parts(_quat_6d(s))
+    q6 = _quat_6d(s)
     r = jnp.stack(
         [
-            1 - 2 * y6 * y6 - 2 * z6 * z6,
-            2 * (y6 * x6 - w6 * z6),
-            2 * (w6 * y6 + z6 * x6),
-            2 * (w6 * z6 + y6 * x6),
-            1 - 2 * x6 * x6 - 2 * z6 * z6,
-            2 * (y6 * z6 - x6 * w6),
-            2 * (z6 * x6 - w6 * y6),
-            2 * (w6 * x6 + z6 * y6),
-            1 - 2 * x6 * x6 - 2 * y6 * y6,
+            1 - 2 * q6[2] * q6[2] - 2 * q6[3] * q6[3],
+            2 * (q6[2] * q6[1] - q6[0] * q6[3]),
+            2 * (q6[0] * q6[2] + q6[3] * q6[1]),
+            2 * (q6[0] * q6[3] + q6[2] * q6[1]),
+            1 - 2 * q6[1] * q6[1] - 2 * q6[3] * q6[3],
+            2 * (q6[2] * q6[3] - q6[1] * q6[0]),
+            2 * (q6[3] * q6[1] - q6[0] * q6[2]),
+            2 * (q6[0] * q6[1] + q6[3] * q6[2]),
+            1 - 2 * q6[1] * q6[1] - 2 * q6[2] * q6[2],
         ]
     )
-    b0, b1, b2 = _parts(bias)
-    r0, r1, r2, r3, r4, r5, _, _, _ = _parts(r)
-    bias_lp = jnp.stack([r0 * b0 + r1 * b1 + r2 * b2, r3 * b0 + r4 * b1 + r5 * b2])
+    bias_lp = jnp.stack(
+        [r[0] * bias[0] + r[1] * bias[1] + r[2] * bias[2], r[3] * bias[0] + r[4] * bias[1] + r[5] * bias[2]]
+    )
     r, r_lp = _filter_vec(r, p.tau_acc, ts, b, a, s.r_lp)
     bias_lp, b_lp = _filter_vec(bias_lp, p.tau_acc, ts, b, a, s.bias_lp)
 
@@ -618,13 +599,11 @@ def _update_acc(p: Params, s: State, acc, ts) -> State:
 
     # measurement: rest (R = I) or motion
     e_rest = s.rest_last_gyr_lp - bias
-    r0, r1, r2, r3, r4, r5, r6, r7, r8 = _parts(r)
-    lp0, lp1 = _parts(bias_lp)
     e_motion = jnp.stack(
         [
-            -acc_e1 / ts + lp0 - r0 * b0 - r1 * b1 - r2 * b2,
-            acc_e0 / ts + lp1 - r3 * b0 - r4 * b1 - r5 * b2,
-            -r6 * b0 - r7 * b1 - r8 * b2,
+            -acc_e[1] / ts + bias_lp[0] - r[0] * bias[0] - r[1] * bias[1] - r[2] * bias[2],
+            acc_e[0] / ts + bias_lp[1] - r[3] * bias[0] - r[4] * bias[1] - r[5] * bias[2],
+            -r[6] * bias[0] - r[7] * bias[1] - r[8] * bias[2],
         ]
     )
     r_motion = r.reshape(3, 3)
@@ -647,10 +626,7 @@ def _update_acc(p: Params, s: State, acc, ts) -> State:
     k = _inv3(k)
     k = _mm(rm.T, k)
     k = _mm(pm, k)
-    k00, k01, k02, k10, k11, k12, k20, k21, k22 = _parts(k.reshape(9))
-    e0, e1, e2 = _parts(e)
-    bias_k = jnp.stack([k00 * e0 + k01 * e1 + k02 * e2, k10 * e0 + k11 * e1 + k12 * e2, k20 * e0 + k21 * e1 + k22 * e2])
-    bias_k = bias_k + bias
+    bias_k = jnp.stack([k[i, 0] * e[0] + k[i, 1] * e[1] + k[i, 2] * e[2] for i in range(3)]) + bias
     bias_k = jnp.clip(bias_k, -bias_clip, bias_clip)
     p_k = pm - _mm(_mm(k, rm), pm)
     bias_new, p_new = _tree_where(do_update, (bias_k, p_k), (bias, pm))
@@ -670,32 +646,30 @@ def _update_mag(p: Params, s: State, mag, ts) -> State:
     dtype = mag.dtype
     en = p.mag_dist_rejection_enabled > 0.5
     mag_e = _qrot(_quat_6d(s), mag)
-    mag_e0, mag_e1, mag_e2 = _parts(mag_e)
 
     # disturbance detection and new-field acceptance
     nrm = _norm(mag_e)
-    dip = -jnp.arcsin(jnp.clip(mag_e2 / jnp.where(nrm > 0, nrm, 1.0), -1.0, 1.0))
+    dip = -jnp.arcsin(jnp.clip(mag_e[2] / jnp.where(nrm > 0, nrm, 1.0), -1.0, 1.0))
     nd = jnp.stack([nrm, dip])
     b, a = _filter_coeffs(p.mag_current_tau, ts)
     nd_f, nd_lp = _filter_vec(nd, p.mag_current_tau, ts, b, a, s.mag_norm_dip_lp)
     use_f = p.mag_current_tau > 0
     nd = jnp.where(use_f, nd_f, nd)
-    nd0, nd1 = _parts(nd)
     nd_lp = _tree_where(use_f, nd_lp, s.mag_norm_dip_lp)
     k_ref = _gain_from_tau(p.mag_ref_tau, ts)
     dip_th = p.mag_dip_th * _DEG
 
     def close(norm_ref, dip_ref):
         th_n = p.mag_norm_th * norm_ref
-        g1 = _gate(th_n - jnp.abs(nd0 - norm_ref), jnp.abs(th_n) + 1e-300, sm)
-        g2 = _gate(dip_th - jnp.abs(nd1 - dip_ref), dip_th, sm)
+        g1 = _gate(th_n - jnp.abs(nd[0] - norm_ref), jnp.abs(th_n) + 1e-300, sm)
+        g2 = _gate(dip_th - jnp.abs(nd[1] - dip_ref), dip_th, sm)
         return g1 * g2
 
     ok_ref = close(s.mag_ref_norm, s.mag_ref_dip)
     und_t = s.mag_undisturbed_t + ts
     long_enough = _gate_ge(und_t - p.mag_min_undisturbed_time, p.mag_min_undisturbed_time, sm)
-    ref_norm_u = s.mag_ref_norm + k_ref * (nd0 - s.mag_ref_norm)
-    ref_dip_u = s.mag_ref_dip + k_ref * (nd1 - s.mag_ref_dip)
+    ref_norm_u = s.mag_ref_norm + k_ref * (nd[0] - s.mag_ref_norm)
+    ref_dip_u = s.mag_ref_dip + k_ref * (nd[1] - s.mag_ref_dip)
     undisturbed = (
         und_t,
         _blend(long_enough, jnp.zeros_like(s.mag_dist_detected), s.mag_dist_detected),
@@ -708,15 +682,15 @@ def _update_mag(p: Params, s: State, mag, ts) -> State:
     ok_cand = close(s.mag_candidate_norm, s.mag_candidate_dip)
     rotating = _gate_ge(_norm(s.rest_last_gyr_lp) - p.mag_new_min_gyr * _DEG, p.mag_new_min_gyr * _DEG, sm)
     cand_t = s.mag_candidate_t + rotating * ts
-    cand_norm = s.mag_candidate_norm + k_ref * (nd0 - s.mag_candidate_norm)
-    cand_dip = s.mag_candidate_dip + k_ref * (nd1 - s.mag_candidate_dip)
+    cand_norm = s.mag_candidate_norm + k_ref * (nd[0] - s.mag_candidate_norm)
+    cand_dip = s.mag_candidate_dip + k_ref * (nd[1] - s.mag_candidate_dip)
     new_time = _gate_ge(cand_t - p.mag_new_time, p.mag_new_time, sm)
     first = (ref_norm == 0.0).astype(dtype) * _gate_ge(cand_t - p.mag_new_first_time, p.mag_new_first_time, sm)
     accept = dist * (new_time + first - new_time * first)  # disturbed and (new_time or first)
     detected = (ref_norm, ref_dip, dist, und_t)
     accepted = (cand_norm, cand_dip, jnp.zeros_like(dist), jnp.zeros_like(und_t) + p.mag_min_undisturbed_time)
     ref_norm, ref_dip, dist, und_t = _blend(ok_cand, _blend(accept, accepted, detected), detected)
-    cand_t, cand_norm, cand_dip = _blend(ok_cand, (cand_t, cand_norm, cand_dip), (jnp.zeros_like(cand_t), nd0, nd1))
+    cand_t, cand_norm, cand_dip = _blend(ok_cand, (cand_t, cand_norm, cand_dip), (jnp.zeros_like(cand_t), nd[0], nd[1]))
     s_dist = s._replace(
         mag_norm_dip=nd,
         mag_norm_dip_lp=nd_lp,
@@ -731,7 +705,7 @@ def _update_mag(p: Params, s: State, mag, ts) -> State:
     s = _tree_where(en, s_dist, s)
 
     # heading disagreement (Section 3.3), wrapped to [-pi, pi]
-    angle = _wrap_pi(jnp.arctan2(mag_e0, mag_e1) - s.delta)
+    angle = _wrap_pi(jnp.arctan2(mag_e[0], mag_e[1]) - s.delta)
     k = _gain_from_tau(p.tau_mag, ts)
     # disturbance rejection (Section 5)
     d = s.mag_dist_detected
