@@ -537,6 +537,57 @@ def _reproduce(args) -> int:
     return _finish_study(payload)
 
 
+#: The flags of ``simulate`` that depend on what is simulated (in the order a refusal names them), and the ones
+#: each kind of observer takes: an AHRS filter on the ahrs study, the complementary observer, a Batista / NLIO
+#: paper study (whose own Config refuses the paper flags of the others, :func:`_study_config`). The rest is refused.
+_SIMULATE_FLAGS = (
+    "trajectory",
+    "latitude",
+    "reference",
+    "gyro_arw",
+    "r0",
+    "x1_init",
+    "m_init",
+    "integrator",
+    "x2_0",
+    "v0",
+    "epsilon",
+    "scenario",
+    "form",
+    "gain",
+    "k_i",
+    "gyro_noise",
+    "vector_noise",
+    "acc_noise",
+    "mag_noise",
+    "rate_scale",
+    "r0_euler",
+    "hold",
+    "gains",
+)
+_SIMULATE_TAKES = {
+    "ahrs": {"gyro_noise", "acc_noise", "mag_noise", "rate_scale", "gains"},
+    "complementary": {"scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "r0_euler", "hold"},
+    "batista": {
+        "trajectory",
+        "latitude",
+        "reference",
+        "gyro_arw",
+        "r0",
+        "x1_init",
+        "m_init",
+        "integrator",
+        "x2_0",
+        "v0",
+        "epsilon",
+        "mag_noise",
+        "rate_scale",
+        "r0_euler",
+        "hold",
+    },
+}
+
+
 def _simulate(args) -> int:
     from . import so3, studies
 
@@ -544,31 +595,9 @@ def _simulate(args) -> int:
     study = studies.get("ahrs" if name in AHRS_FILTERS else name)
     r0_euler = getattr(args, "r0_euler", None)
     observers, extra = None, None  # the study's own observers and gains unless --gains replaces them
-    if name in AHRS_FILTERS:
-        _refuse(
-            args,
-            [
-                "trajectory",
-                "latitude",
-                "reference",
-                "gyro_arw",
-                "r0",
-                "x1_init",
-                "m_init",
-                "integrator",
-                "x2_0",
-                "v0",
-                "epsilon",
-                "scenario",
-                "form",
-                "gain",
-                "k_i",
-                "vector_noise",
-                "r0_euler",
-                "hold",
-            ],
-            name,
-        )
+    kind = "ahrs" if name in AHRS_FILTERS else ("complementary" if name == "complementary" else "batista")
+    _refuse(args, [a for a in _SIMULATE_FLAGS if a not in _SIMULATE_TAKES[kind]], name)
+    if kind == "ahrs":
         kw = _given(
             args,
             {
@@ -593,28 +622,7 @@ def _simulate(args) -> int:
             gains = gainsfile.read_params(args.gains, entry, base=entry.params(dtype=studies.base.paper_dtype()))
             observers = {name: (registry.recorded_observer(entry), gains)}
             extra = {"gains_file": args.gains}
-    elif name == "complementary":
-        _refuse(
-            args,
-            [
-                "acc_noise",
-                "gains",
-                "trajectory",
-                "rate_scale",
-                "latitude",
-                "reference",
-                "gyro_arw",
-                "mag_noise",
-                "r0",
-                "x1_init",
-                "m_init",
-                "integrator",
-                "x2_0",
-                "v0",
-                "epsilon",
-            ],
-            name,
-        )
+    elif kind == "complementary":
         kw = _given(
             args,
             {
@@ -637,7 +645,6 @@ def _simulate(args) -> int:
             kw["r_hat_0_euler_deg"] = r0_euler
         title = f"complementary simulate ({kw.get('scenario', 'rotating')})"
     else:
-        _refuse(args, ["scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "acc_noise", "gains"], name)
         kw = _given(
             args,
             {

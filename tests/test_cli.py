@@ -1,5 +1,6 @@
 """The command line end to end on short runs: exit codes, JSON layout, clear errors."""
 
+import argparse
 import json
 import os
 import subprocess
@@ -706,3 +707,33 @@ def test_simulate_an_ahrs_filter_is_jaxatt_monte_carlo_on_the_same_imu(tmp_path)
     )
     assert d2["metrics"]["mean_angle_error_deg"]["mean"] != d["metrics"]["mean_angle_error_deg"]["mean"]
     assert cli.main([*argv, "--gains", str(gains), "--observer", "madgwick"]) == 2  # gains of another filter
+
+
+#: The simulate flags each kind of observer refuses (the set-up flags of the other kinds).
+_PAPER_FLAGS = ["trajectory", "latitude", "reference", "gyro_arw", "r0", "x1_init", "m_init", "integrator", "x2_0"]
+_PAPER_FLAGS += ["v0", "epsilon"]
+_COMPLEMENTARY_FLAGS = ["scenario", "form", "gain", "k_i", "vector_noise"]
+SIMULATE_REFUSED = {
+    "madgwick": _PAPER_FLAGS + _COMPLEMENTARY_FLAGS + ["r0_euler", "hold"],
+    "complementary": _PAPER_FLAGS + ["acc_noise", "mag_noise", "rate_scale", "gains"],
+    "batista-ges": _COMPLEMENTARY_FLAGS + ["gyro_noise", "acc_noise", "gains"],
+}
+
+
+@pytest.mark.parametrize("observer", sorted(SIMULATE_REFUSED))
+def test_simulate_refuses_each_flag_its_observer_does_not_take(observer):
+    """An AHRS filter, the complementary observer and a paper study each refuse the set-up flags of the others in
+    one line naming the flag, before anything is computed, and refuse no other flag."""
+    base = cli._parser().parse_args(["simulate", "--observer", observer])
+    refused = []
+    for attr in cli._SIMULATE_FLAGS:
+        args = argparse.Namespace(**vars(base))
+        setattr(args, attr, "given")
+        flag = "--" + attr.replace("_", "-")
+        if attr in SIMULATE_REFUSED[observer]:
+            with pytest.raises(cli.UserError, match=f"^{flag} does not apply to {observer}$"):
+                cli._simulate(args)
+            refused.append(attr)
+    assert sorted(refused) == sorted(SIMULATE_REFUSED[observer])
+    kind = {"madgwick": "ahrs", "complementary": "complementary", "batista-ges": "batista"}[observer]
+    assert set(cli._SIMULATE_FLAGS) - cli._SIMULATE_TAKES[kind] == set(SIMULATE_REFUSED[observer])
