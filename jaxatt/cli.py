@@ -540,7 +540,7 @@ def _reproduce(args) -> int:
 #: The flags of ``simulate`` that depend on what is simulated (in the order a refusal names them), and the ones
 #: each kind of observer takes: an AHRS filter on the ahrs study, the complementary observer, a Batista / NLIO
 #: paper study (whose own Config refuses the paper flags of the others, :func:`_study_config`). The rest is refused.
-_SIMULATE_FLAGS = (
+_PAPER_SETUP_FLAGS = (
     "trajectory",
     "latitude",
     "reference",
@@ -552,12 +552,12 @@ _SIMULATE_FLAGS = (
     "x2_0",
     "v0",
     "epsilon",
-    "scenario",
-    "form",
-    "gain",
-    "k_i",
+)
+_COMPLEMENTARY_SETUP_FLAGS = ("scenario", "form", "gain", "k_i", "vector_noise")
+_SIMULATE_FLAGS = (
+    *_PAPER_SETUP_FLAGS,
+    *_COMPLEMENTARY_SETUP_FLAGS,
     "gyro_noise",
-    "vector_noise",
     "acc_noise",
     "mag_noise",
     "rate_scale",
@@ -567,24 +567,8 @@ _SIMULATE_FLAGS = (
 )
 _SIMULATE_TAKES = {
     "ahrs": {"gyro_noise", "acc_noise", "mag_noise", "rate_scale", "gains"},
-    "complementary": {"scenario", "form", "gain", "k_i", "gyro_noise", "vector_noise", "r0_euler", "hold"},
-    "batista": {
-        "trajectory",
-        "latitude",
-        "reference",
-        "gyro_arw",
-        "r0",
-        "x1_init",
-        "m_init",
-        "integrator",
-        "x2_0",
-        "v0",
-        "epsilon",
-        "mag_noise",
-        "rate_scale",
-        "r0_euler",
-        "hold",
-    },
+    "complementary": {*_COMPLEMENTARY_SETUP_FLAGS, "gyro_noise", "r0_euler", "hold"},
+    "batista": {*_PAPER_SETUP_FLAGS, "mag_noise", "rate_scale", "r0_euler", "hold"},
 }
 
 
