@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import engine, frames
+from . import engine, frames, units
 from .observers import registry
 from .types import ImuSample, Observer
 
@@ -248,31 +248,35 @@ def _warn_implausible(
         if g > 35.0:
             notes.append(
                 f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s "
-                "(jaxatt filter --gyr-unit deg/s converts it)"
+                "(gyr_unit='deg/s' in jaxatt.filter, --gyr-unit deg/s in jaxatt filter, converts it)"
             )
         elif ratio is not None and ratio > 5.0:
             notes.append(
                 f"the gyro turns {ratio:.3g}x as far as the accelerometer and magnetometer do: is gyr in deg/s "
-                "(57x)? jaxatt expects rad/s (jaxatt filter --gyr-unit deg/s converts it)"
+                "(57x)? jaxatt expects rad/s (gyr_unit='deg/s' in jaxatt.filter, --gyr-unit deg/s in jaxatt filter, "
+                "converts it)"
             )
         if acc is not None and np.isfinite(acc).any():
             acc_norm = float(np.nanmedian(np.linalg.norm(acc, axis=-1)))
             if 0.5 < acc_norm < 2.0:
                 notes.append(
                     f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest; "
-                    "jaxatt filter --acc-unit g converts it)"
+                    "acc_unit='g' in jaxatt.filter, --acc-unit g in jaxatt filter, converts it)"
                 )
         d = np.diff(ts)
         step = float(np.median(d))
         if step > 1.0:
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
             if from_dt:  # the user's own sample period, not timestamps
-                notes.append(f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s")
+                notes.append(
+                    f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s (time_unit='{unit}' in "
+                    "jaxatt.filter converts it)"
+                )
             else:
                 notes.append(
                     f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
-                    f"(convert t to seconds, e.g. jaxatt filter --time-unit {unit}, or give the sample period: dt= / "
-                    "--dt)"
+                    f"(time_unit='{unit}' in jaxatt.filter, --time-unit {unit} in jaxatt filter, converts them; or "
+                    "give the sample period: dt= / --dt)"
                 )
         gaps = d > 10.0 * step
         if gaps.any():
@@ -542,6 +546,9 @@ def filter(
     hold: Optional[str] = None,
     dtype=None,
     offline=False,
+    gyr_unit: str = "rad/s",
+    acc_unit: str = "m/s^2",
+    time_unit: str = "s",
 ) -> Estimate:
     """Run an observer over one recording; T estimates for T samples (numpy).
 
@@ -577,6 +584,9 @@ def filter(
             and the backward weights ``weight_inclination``, ``weight_heading``. The observer's navigation frame
             must be fixed by gravity and the magnetic field (every registered 9D observer); a 6D observer
             (no magnetometer) is smoothed in inclination only.
+        gyr_unit, acc_unit, time_unit: the units ``gyr``, ``acc`` and ``t`` / ``dt`` come in
+            (:mod:`jaxatt.units`: "rad/s" or "deg/s"; "m/s^2" or "g"; "s", "ms", "us" or "ns"), converted to rad/s,
+            m/s^2 and s before anything else; the estimate's ``t`` is in s.
     Raises ValueError (one line naming the argument) on bad input, FloatingPointError when an estimate is not
     finite (the first row and time are named).
     """
@@ -584,14 +594,21 @@ def filter(
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)
-    gyr_a = _vectors("gyr", gyr, None, True)
+    time_factor = units.factor("time_unit", time_unit)
+    gyr_a = units.to_si(_vectors("gyr", gyr, None, True), "gyr_unit", gyr_unit)
     assert gyr_a is not None  # required: _vectors raised on None
     n = gyr_a.shape[0]
     if n < 2:
         raise ValueError(f"gyr must have at least 2 samples, got {n}")
-    acc_a = _vectors("acc", acc, n, False)
+    acc_a = units.to_si(_vectors("acc", acc, n, False), "acc_unit", acc_unit)
     mag_a = _vectors("mag", mag, n, False)
+    if time_factor != 1.0 and t is not None and np.asarray(t).dtype.kind in "mM":
+        raise ValueError(
+            f"time_unit {time_unit!r} applies to numeric t or dt: datetime64 / timedelta64 timestamps carry their own "
+            "unit (leave time_unit 's')"
+        )
     ts, per_step = _times(t, dt, n)
+    ts = ts * time_factor if time_factor != 1.0 else ts
     _warn_implausible(gyr_a, acc_a, mag_a, ts, from_dt=t is None)
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)

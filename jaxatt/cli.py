@@ -15,7 +15,6 @@ results and writes the files (the others print only errors and progress on stder
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import re
 import signal
@@ -27,6 +26,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from . import units
 from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
@@ -217,14 +217,17 @@ def _parser() -> argparse.ArgumentParser:
         help="sample period, s (default: the log's timestamps; a log without t needs it)",
     )
     fp.add_argument(
-        "--gyr-unit", choices=GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
+        "--gyr-unit", choices=units.GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
     )
     fp.add_argument(
-        "--acc-unit", choices=ACC_UNITS, default="m/s^2", help="unit of the log's accelerometer columns (default m/s^2)"
+        "--acc-unit",
+        choices=units.ACC_UNITS,
+        default="m/s^2",
+        help="unit of the log's accelerometer columns (default m/s^2)",
     )
     fp.add_argument(
         "--time-unit",
-        choices=TIME_UNITS,
+        choices=units.TIME_UNITS,
         default="s",
         help="unit of the log's t column (default s); the estimates' t is written in s",
     )
@@ -1008,11 +1011,6 @@ def _load_any_log(path: str, dt: Optional[float] = None):
         return samples, None
 
 
-#: ``jaxatt filter``'s unit flags: the factor to the units jaxatt works in (rad/s, m/s^2, s)
-GYR_UNITS = {"rad/s": 1.0, "deg/s": math.pi / 180.0}
-ACC_UNITS = {"m/s^2": 1.0, "g": 9.80665}
-TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
 FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
 
@@ -1051,17 +1049,10 @@ def _observer_and_params(args):
 def _in_si_units(samples, args):
     """The log in rad/s, m/s^2 and s from ``--gyr-unit``, ``--acc-unit`` and ``--time-unit`` (mag is left in
     its own unit)."""
-
-    def scale(a, f):  # in the log's own precision (a float32 BROAD trial stays float32)
-        if a is None or f == 1.0:
-            return a
-        a = np.asarray(a)
-        return a * np.asarray(f, a.dtype if a.dtype.kind == "f" else np.float64)
-
     return samples._replace(
-        t=scale(samples.t, TIME_UNITS[args.time_unit]),
-        gyr=scale(samples.gyr, GYR_UNITS[args.gyr_unit]),
-        acc=scale(samples.acc, ACC_UNITS[args.acc_unit]),
+        t=units.to_si(samples.t, "time_unit", args.time_unit),
+        gyr=units.to_si(samples.gyr, "gyr_unit", args.gyr_unit),
+        acc=units.to_si(samples.acc, "acc_unit", args.acc_unit),
     )
 
 

@@ -157,7 +157,7 @@ def test_filter_unit_flags_read_a_log_in_deg_per_s_g_and_ms(tmp_path, capsys):
     # without the flags the same log is warned about (its g and ms here), with the flag that converts each
     assert cli.main(["filter", "--log", str(raw), "--observer", "mahony", "--out", str(tmp_path / "e3.csv")]) == 0
     err = capsys.readouterr().err
-    assert "--acc-unit g converts it" in err and "--time-unit ms" in err, err
+    assert "--acc-unit g in jaxatt filter" in err and "--time-unit ms" in err, err
     # --time-unit with --dt: one clear line, exit 2, before computing
     assert (
         cli.main(["filter", "--log", str(raw), "--time-unit", "ms", "--dt", "0.01", "--out", str(tmp_path / "e4.csv")])

@@ -361,6 +361,22 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.monte_carlo(MY_OBSERVER, MyParams, runs=2), r"is type .*not an array of numbers"),
         (lambda g, a, m: jaxatt.fit(MY_OBSERVER, _PlainParams(), [_tiny_trial()], steps=1), "not an array of num"),
         (lambda g, a, m: jaxatt.broad_score("mahony", None, _tiny_trial()), r"a list of trials, got one Trial"),
+        # units of the recording
+        (
+            lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, gyr_unit="rpm"),
+            r"gyr_unit must be one of 'rad/s', ",
+        ),
+        (
+            lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, acc_unit=9.81),
+            r"acc_unit must be one of .*got 9.81",
+        ),
+        (lambda g, a, m: jaxatt.filter("mahony", g, a, m, dt=0.01, time_unit="min"), r"time_unit must be one of 's', "),
+        (
+            lambda g, a, m: jaxatt.filter(
+                "mahony", g, a, m, t=np.arange(50) * np.timedelta64(10, "ms"), time_unit="ms"
+            ),
+            r"time_unit 'ms' applies to numeric t or dt: datetime64 / timedelta64 timestamps carry their own unit",
+        ),
         # fit's optimiser arguments
         (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, clip=-1.0), "clip must be"),
         (lambda g, a, m: jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], val_every=0), "val_every must be"),
@@ -469,7 +485,38 @@ def test_a_sample_period_in_ms_is_warned_about_as_dt_not_as_timestamps():
         warnings.simplefilter("always")
         jaxatt.filter(MY_OBSERVER, gyr, acc, mag, dt=10.0, params=MY_PARAMS)
     said = [str(w.message) for w in caught if "10 s" in str(w.message)]
-    assert said == ["the sample period dt is 10 s: is it in ms? jaxatt expects s"], [str(w.message) for w in caught]
+    assert said == [
+        "the sample period dt is 10 s: is it in ms? jaxatt expects s (time_unit='ms' in jaxatt.filter converts it)"
+    ], [str(w.message) for w in caught]
+
+
+def test_unit_arguments_give_the_filter_of_the_same_recording_in_si_units():
+    """A logger's deg/s, g and ms (timestamps or sample period) through gyr_unit / acc_unit / time_unit give the
+    estimates of the same recording in rad/s, m/s^2 and s, t in s, without the wrong-unit warnings; a float32
+    recording stays float32."""
+    n = 60
+    rng = np.random.default_rng(1)
+    t = np.arange(n) * 0.01
+    gyr = np.tile([0.1, -0.2, 1.0], (n, 1)) + 0.01 * rng.standard_normal((n, 3))
+    acc, mag = np.tile([0.3, 0, 9.81], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    si = jaxatt.filter(MY_OBSERVER, gyr, acc, mag, t=t, params=MY_PARAMS)
+    raw = {"gyr_unit": "deg/s", "acc_unit": "g", "time_unit": "ms"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # deg/s, g and ms are no longer warned about
+        by_t = jaxatt.filter(MY_OBSERVER, np.rad2deg(gyr), acc / 9.80665, mag, t=t * 1e3, params=MY_PARAMS, **raw)
+        by_dt = jaxatt.filter(MY_OBSERVER, np.rad2deg(gyr), acc / 9.80665, mag, dt=10.0, params=MY_PARAMS, **raw)
+    for est in (by_t, by_dt):
+        np.testing.assert_allclose(est.t, si.t, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(est.quat, si.quat, atol=1e-12)
+        assert not np.allclose(
+            est.quat,
+            jaxatt.filter(MY_OBSERVER, gyr, acc, mag, t=t, params=MY_PARAMS._replace(kp=jnp.asarray(2.0))).quat,
+            atol=1e-6,
+        )  # the comparison can fail: other gains give other estimates
+    f32 = [np.asarray(a, np.float32) for a in (np.rad2deg(gyr), acc / 9.80665, mag)]
+    est32 = jaxatt.filter(MY_OBSERVER, *f32, dt=10.0, params=MY_PARAMS, **raw)
+    assert est32.quat.dtype == np.float32
+    np.testing.assert_allclose(est32.quat, si.quat, atol=1e-5)
 
 
 def test_a_degenerate_first_sample_still_starts_on_so3():
