@@ -192,6 +192,12 @@ def _parser() -> argparse.ArgumentParser:
     fp = sub.add_parser("filter", help="run an observer on your own log (CSV / NPZ / BROAD HDF5) and write estimates")
     fp.add_argument("--log", required=True, help="CSV or NPZ log (jaxatt.data.logs) or a BROAD .hdf5 trial")
     fp.add_argument(
+        "--columns",
+        default=None,
+        help="the CSV log's own column names, e.g. t=time,gyr_x=GyroX,gyr_y=GyroY,gyr_z=GyroZ (the format's names: "
+        "t, gyr_*, acc_*, mag_*, quat_*; units are set by the unit flags)",
+    )
+    fp.add_argument(
         "--observer",
         default="robust",
         help="a registered observer (robust, mahony, mekf, nlio, ...) or module:attr of your own "
@@ -409,6 +415,11 @@ def _parser() -> argparse.ArgumentParser:
     src = ep.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=SCENARIOS)
     src.add_argument("--log", help="CSV or NPZ log (jaxatt.data.logs): acc and mag vs constant references")
+    ep.add_argument(
+        "--columns",
+        default=None,
+        help="the CSV log's own column names, e.g. t=time,acc_x=AccX,... (the format's names: t, gyr_*, acc_*, mag_*)",
+    )
     ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
     ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
     ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
@@ -988,23 +999,32 @@ def _check_log_path(path: str) -> None:
         raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
 
 
-def _load_any_log(path: str, dt: Optional[float] = None):
-    """(samples, rate in Hz or None) of a CSV / NPZ log or a BROAD trial; ``dt`` (s) times a log without ``t``."""
+def _load_any_log(path: str, dt: Optional[float] = None, columns: Optional[str] = None):
+    """(samples, rate in Hz or None) of a CSV / NPZ log or a BROAD trial; ``dt`` (s) times a log without ``t``;
+    ``columns`` (``--columns``): the CSV log's own column names."""
     from pathlib import Path
 
     from .data import broad, logs
 
     _check_log_path(path)
+    names = None
+    if columns is not None:
+        if Path(path).suffix.lower() != ".csv":
+            raise UserError(f"--columns applies to a CSV log, not to {Path(path).name}")
+        try:
+            names = logs.check_columns(columns)
+        except ValueError as e:
+            raise UserError(f"--{e}") from None
     if Path(path).suffix.lower() in (".hdf5", ".h5"):
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
     try:
-        return logs.load_log(path, dt=dt), None
+        return logs.load_log(path, dt=dt, columns=names), None
     except ValueError as e:
         if dt is None:
             raise
         try:  # --dt times the log: timestamps that are broken need not stop it
-            samples = logs.load_log(path, dt=dt, replace_t=True)
+            samples = logs.load_log(path, dt=dt, replace_t=True, columns=names)
         except ValueError:
             raise e from None
         warnings.warn(f"the log's timestamps are not read, --dt {dt:g} s times it: {e}", stacklevel=1)
@@ -1069,7 +1089,7 @@ def _filter(args) -> int:
 
     if args.dt is not None and args.time_unit != "s":
         raise ValueError(f"--time-unit {args.time_unit} and --dt: --dt replaces the log's t, give one of them")
-    samples, rate = _load_any_log(args.log, args.dt)
+    samples, rate = _load_any_log(args.log, args.dt, args.columns)
     samples = _in_si_units(samples, args)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
     if args.dt is not None and len(samples.t) > 1:
@@ -1138,7 +1158,7 @@ def _excitation(args) -> int:
 
     io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--log": args.log})
     io.check_figure_path(args.plot, "--plot", inputs={"--log": args.log, "--json": args.json})
-    ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame")
+    ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame", "--columns")
     given = [flag for flag in ignored if getattr(args, flag[2:].replace("-", "_")) is not None]
     if given:
         what = "a log (it has its own timestamps)" if args.log else "a scenario (its references are built in)"
@@ -1156,7 +1176,7 @@ def _excitation(args) -> int:
     else:
         from .observers import complementary as comp
 
-        samples = _load_any_log(args.log)[0]
+        samples = _load_any_log(args.log, columns=args.columns)[0]
         if samples.acc is None and samples.mag is None:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         args.frame = args.frame or "NED"

@@ -142,6 +142,13 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/log.csv", "--observer", "nope", "--out", "{d}/keep.csv"], r"unknown observer 'nope'"),
     (["filter", "--log", "{d}/log.csv", "--observer", "nomodule:X", "--out", "{d}/keep.csv"], r"cannot import"),
     (["filter", "--log", "{d}/log.csv", "--params", "a:b", "--out", "{d}/keep.csv"], r"--params applies"),
+    (["filter", "--log", "{d}/log.csv", "--columns", "gx", "--out", "{d}/keep.csv"], r"--columns must be 'name="),
+    (["filter", "--log", "{d}/log.csv", "--columns", "w_x=gx", "--out", "{d}/keep.csv"], r"--columns: 'w_x' is not"),
+    (["filter", "--log", "{d}/log.csv", "--columns", "t=time", "--out", "{d}/keep.csv"], r"column 'time' \(given in"),
+    (
+        ["filter", "--log", "{d}/unix_float32.npz", "--columns", "t=time", "--out", "{d}/keep.csv"],
+        r"--columns applies to a CSV log, not to unix_float32\.npz",
+    ),
     (["filter", "--log", "{d}/log.csv", "--gains", "{d}/missing.json", "--out", "{d}/keep.csv"], r"not found"),
     (["filter", "--log", "{d}/log.csv", "--gains", "{d}/broken.json", "--out", "{d}/keep.csv"], r"broken\.json"),
     (["filter", "--log", "{d}/log.csv", "--gains", "{d}/so3_study.json", "--out", "{d}/keep.csv"], r"so3_study"),
@@ -232,6 +239,8 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--json", "/proc/x.json"], r"--json /proc/x\.json"),
     (["excitation", "--scenario", "rotating", "--plot", "{d}/folder"], r"--plot .*folder"),
     (["excitation", "--scenario", "nope"], r"argument --scenario"),
+    (["excitation", "--scenario", "rotating", "--columns", "t=time"], r"--columns does not apply to a scenario"),
+    (["excitation", "--log", "{d}/log.csv", "--mag-ref", "20,0,-40", "--columns", "acc_x=ax"], r"column 'ax' \(given"),
     (
         ["excitation", "--scenario", "rotating", "--plot", "{d}/fig.txt"],
         r"--plot .*fig\.txt: unknown figure format 'txt'",

@@ -164,6 +164,18 @@ def test_filter_unit_flags_read_a_log_in_deg_per_s_g_and_ms(tmp_path, capsys):
         == 2
     )
     assert "--time-unit ms and --dt" in capsys.readouterr().err
+    # the same log with a logger's own column names, read through --columns
+    theirs = tmp_path / "theirs.csv"
+    names = {"t": "time_ms", "gyr_x": "GyroX", "gyr_y": "GyroY", "gyr_z": "GyroZ", "acc_x": "ax", "mag_z": "Bz"}
+    lines = raw.read_text().splitlines()
+    theirs.write_text("\n".join([",".join(names.get(h, h) for h in lines[0].split(","))] + lines[1:]) + "\n")
+    cols = ",".join(f"{k}={v}" for k, v in names.items())
+    out_theirs = tmp_path / "est_theirs.csv"
+    argv = ["filter", "--log", str(theirs), "--columns", cols, "--observer", "mahony", *flags, "--out", str(out_theirs)]
+    assert cli.main(argv) == 0
+    c = np.genfromtxt(out_theirs, delimiter=",", names=True)
+    for name in ("t", "qw", "qx", "qy", "qz"):
+        np.testing.assert_array_equal(c[name], b[name])
 
 
 def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):

@@ -361,3 +361,43 @@ def test_csv_errors_name_the_file_line_and_numpy_savetxt_headers_read(tmp_path):
     assert_same(want, logs.load_log(p))
     p.write_text("\n\n" + p.read_text())
     assert_same(want, logs.load_log(p))
+
+
+def test_a_logger_s_own_column_names_read_through_columns(tmp_path):
+    """A CSV with a logger's names (time, GyroX, ..., AccX, ...), read with ``columns``, gives the same samples
+    as the file written with the format's names; a column that carries a format's name but is mapped from
+    another is not read; the mapping given as text (the CLI's --columns) is the same mapping."""
+    s, _ = make_log(with_mag=False)
+    ours = tmp_path / "ours.csv"
+    logs.save_log(ours, s)
+    theirs = tmp_path / "theirs.csv"
+    names = {"t": "time", "gyr_x": "GyroX", "gyr_y": "GyroY", "gyr_z": "GyroZ"}
+    names.update({"acc_x": "AccX", "acc_y": "AccY", "acc_z": "acc_x"})  # the file's acc_x holds the format's acc_z
+    lines = ours.read_text().splitlines()
+    header = lines[0].split(",")
+    theirs.write_text("\n".join([",".join(names.get(h, h) for h in header)] + lines[1:]) + "\n")
+    with pytest.raises(ValueError, match="required column 't' missing"):
+        logs.load_log(theirs)
+    assert_same(s, logs.load_log(theirs, columns=names))
+    assert_same(s, logs.load_csv(theirs, columns=",".join(f"{k}={v}" for k, v in names.items())))
+
+
+@pytest.mark.parametrize(
+    "columns, match",
+    [
+        ({"gyro_x": "GyroX"}, r"columns: 'gyro_x' is not one of the format's columns \(t, gyr_x, "),
+        ({"gyr_x": "a", "gyr_y": "a"}, r"columns: the file's column 'a' is given for more than one"),
+        ({"gyr_x": ""}, r"columns: the file's column for 'gyr_x' must be a name, got ''"),
+        ("gyr_x:GyroX", r"columns must be 'name=column,...' \(e.g. 'gyr_x=GyroX,t=time'\), got 'gyr_x:GyroX'"),
+        (["gyr_x"], r"columns must be a mapping of the format's column names to the file's"),
+        ({"gyr_x": "GyroQ"}, r"x.csv: column 'GyroQ' \(given in columns\) is not in the header: \['t', 'gyr_x'"),
+    ],
+)
+def test_bad_columns_are_one_line_naming_the_entry(tmp_path, columns, match):
+    p = tmp_path / "x.csv"
+    logs.save_log(p, make_log(with_acc=False, with_mag=False)[0])
+    with pytest.raises(ValueError, match=match) as e:
+        logs.load_log(p, columns=columns)
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match=r"columns applies to a CSV log, not to an NPZ file"):
+        logs.load_log(tmp_path / "x.npz", columns={"gyr_x": "g"})

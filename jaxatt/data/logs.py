@@ -12,7 +12,8 @@ arrays) or ISO 8601 text such as ``2024-05-01 12:00:00.001`` (CSV; pandas writes
 first sample, and ``timedelta64`` durations become seconds, each from its own unit (ms, us, ns, ...).
 
 CSV: one header line (comment lines starting with ``#`` may precede it) naming the columns (order free, extra
-columns ignored; a column named nearly as one of the format's, ``magn_x`` or ``ACC_X``, is warned about),
+columns ignored; a column named nearly as one of the format's, ``magn_x`` or ``ACC_X``, is warned about; a
+logger's own names are read through ``columns={"t": "time", "gyr_x": "GyroX", ...}`` / ``--columns``),
 separated by commas, or by semicolons or tabs (the header line's separator is the file's; with a semicolon or a
 tab, a decimal comma such as ``0,25`` is read as 0.25): ``t, gyr_x, gyr_y, gyr_z`` required (``t`` may be left
 out when the sample period is given: ``dt=``, ``--dt``); ``acc_x, acc_y, acc_z`` and ``mag_x, mag_y, mag_z``
@@ -31,7 +32,7 @@ import re
 import warnings
 import zipfile
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Dict, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
@@ -46,6 +47,7 @@ __all__ = [
     "load_npz",
     "save_npz",
     "check_log",
+    "check_columns",
     "non_unit_row",
     "UNIT_TOLERANCE",
     "CSV_COLUMNS",
@@ -328,14 +330,50 @@ _COLUMNS_READ = "; the columns read are t, gyr_x, gyr_y, gyr_z and the groups ac
 MISSING_CELLS = frozenset({"na", "n/a", "null", "none"})
 
 
-def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
+def check_columns(columns) -> Dict[str, str]:
+    """``columns`` (a mapping, or text ``"gyr_x=GyroX,gyr_y=GyroY,..."``): which column of a CSV file holds each
+    of the format's columns (:data:`CSV_COLUMNS`); ValueError naming the bad entry."""
+    if columns is None:
+        return {}
+    if isinstance(columns, str):
+        pairs = [p.strip() for p in columns.split(",") if p.strip()]
+        if not pairs or any(p.count("=") != 1 for p in pairs):
+            raise ValueError(f"columns must be 'name=column,...' (e.g. 'gyr_x=GyroX,t=time'), got {columns!r}")
+        columns = dict((k.strip(), v.strip()) for k, v in (p.split("=") for p in pairs))
+    if not isinstance(columns, Mapping):
+        raise ValueError(f"columns must be a mapping of the format's column names to the file's, got {columns!r}")
+    names = [c for cols in CSV_COLUMNS.values() for c in cols]
+    for k, v in columns.items():
+        if k not in names:
+            raise ValueError(f"columns: {k!r} is not one of the format's columns ({', '.join(names)})")
+        if not isinstance(v, str) or not v:
+            raise ValueError(f"columns: the file's column for {k!r} must be a name, got {v!r}")
+    given = list(columns.values())
+    twice = sorted({v for v in given if given.count(v) > 1})
+    if twice:
+        raise ValueError(f"columns: the file's column {twice[0]!r} is given for more than one of the format's columns")
+    return dict(columns)
+
+
+def load_csv(
+    path,
+    *,
+    with_truth: bool = False,
+    dt: Optional[float] = None,
+    replace_t: bool = False,
+    columns: Union[Mapping[str, str], str, None] = None,
+):
     """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None)).
 
     ``dt`` (s): the sample period of a log without a ``t`` column (t = 0, dt, 2 dt, ...); a ``t`` column, when
     there is one, is read and ``dt`` is not used (``replace_t``: the column is not read and ``dt`` times the log).
+    ``columns``: the file's names of the format's columns, e.g. ``{"t": "time", "gyr_x": "GyroX", ...}``
+    (:func:`check_columns`; the units are not converted: :mod:`jaxatt.units`); a column of the file that carries
+    one of the format's names but is mapped from another is not read.
     Plain numeric files go through numpy's C reader; a file with
     empty cells (read as NaN) or anything unusual is read cell by cell, and a cell that is not a number is
     refused with its line and column."""
+    rename = {v: k for k, v in check_columns(columns).items()}
     path = Path(path)
     src = str(path)
     with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
@@ -357,6 +395,12 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
             f.seek(start)
         if len(set(header)) != len(header):
             raise ValueError(f"{src}: duplicate column names in the header: {header}")
+        if rename:
+            absent = [v for v in rename if v not in header]
+            if absent:
+                raise ValueError(f"{src}: column {absent[0]!r} (given in columns) is not in the header: {header}")
+            mapped = set(rename.values())  # the file's own column of a mapped name is not read
+            header = [rename.get(h, "" if h in mapped else h) for h in header]
         if replace_t:
             _uniform_times(0, dt, src)  # dt must be given
             header = ["" if h == "t" else h for h in header]  # not read
@@ -397,12 +441,12 @@ def load_csv(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
                         stacklevel=3,
                     )
         names = [c for cols in groups.values() for c in cols]
-        columns = [idx[c] for c in names]
+        read = [idx[c] for c in names]  # the file's column indices
         body = f.tell()
-        table = _read_table_fast(f, columns, len(header), sep)
+        table = _read_table_fast(f, read, len(header), sep)
         if table is None:
             f.seek(body)
-            table = _read_table_checked(f, header, columns, src, sep, first_line=line + 1)
+            table = _read_table_checked(f, header, read, src, sep, first_line=line + 1)
     at = {c: j for j, c in enumerate(names)}
     data = {}
     for name, cols in groups.items():
@@ -490,8 +534,16 @@ def _kind(path) -> str:
     raise ValueError(f"{path}: unknown log format {suf!r} (use .csv or .npz)")
 
 
-def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
-    """Read a .csv or .npz log (see the module docstring for columns, units and frames).
+def load_log(
+    path,
+    *,
+    with_truth: bool = False,
+    dt: Optional[float] = None,
+    replace_t: bool = False,
+    columns: Union[Mapping[str, str], str, None] = None,
+):
+    """Read a .csv or .npz log (see the module docstring for columns, units and frames); ``columns``: the CSV
+    file's own column names (:func:`load_csv`).
 
     Returns ImuSample(t (N,), gyr (N, 3), acc (N, 3) or None, mag (N, 3) or None) of float64 numpy arrays, or
     (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. ``dt`` (s): the sample period of a log with
@@ -500,6 +552,8 @@ def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
     shapes, missing columns, non-numeric fields, non-finite or non-increasing time.
     """
     kind = _kind(path)
+    if columns is not None and kind != "csv":
+        raise ValueError(f"log {path}: columns applies to a CSV log, not to an {kind.upper()} file")
     if not Path(path).is_file():
         raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
     if kind == "csv":
@@ -512,7 +566,9 @@ def load_log(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
                 "PowerShell's default); save it as UTF-8 (or ASCII) CSV"
             )
     try:
-        return (load_csv if kind == "csv" else load_npz)(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
+        if kind == "csv":
+            return load_csv(path, with_truth=with_truth, dt=dt, replace_t=replace_t, columns=columns)
+        return load_npz(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
     except UnicodeDecodeError as e:
         if kind != "csv":
             raise ValueError(f"log {path}: cannot read it ({e})") from None
