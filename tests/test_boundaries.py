@@ -188,7 +188,6 @@ BAD_INPUT = [
     (["simulate", "--observer", "robust", "--gains", "{d}/keep.json", *MC], r"keep\.json"),
     (["simulate", "--observer", "madgwick", "--acc-noise", "-1", *MC], r"argument --acc-noise"),
     (["simulate", "--observer", "madgwick", "--window-start", "9", "--duration", "3", "--runs", "1"], r"window"),
-    (["simulate", "--observer", "madgwick", *MC, "--plot", "{d}/c.png"], r"--plot: ahrs has no figure"),
     # tune / evaluate
     (["tune", "--experiment", "batista-so3", "--out", "{d}/folder", "--steps", "1"], r"--out .*folder: is a folder"),
     (["tune", "--experiment", "batista-so3", "--out", "/proc/g.json", "--steps", "1"], r"--out /proc/g\.json"),
@@ -288,7 +287,6 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--duration", "1e300"], r"steps per run"),
     (["tune", "--experiment", "batista-so3", "--val-runs", "1" + "0" * 20], r"argument --val-runs: must be <="),
     (["filter", "--log", "{d}/missing.csv", "--out", "{d}/new_folder/a.csv"], r"not found"),
-    (["simulate", "--observer", "complementary", *MC, "--plot", "{d}/c.png"], r"--plot: complementary has no figure"),
     (["broad-tune", "--data-dir", "{d}/trials_ok", "--steps", "1" + "0" * 24], r"argument --steps: must be <="),
     (["reproduce", "batista-so3", *MC, "--json", "{d}/empty_runs.json", "--resume"], r"not a runs file of jaxatt"),
     (["reproduce", "batista-so3", *MC, "--json", "{d}/runs_folder.json"], r"runs file saved beside it.*is a folder"),

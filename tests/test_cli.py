@@ -721,6 +721,45 @@ def test_simulate_an_ahrs_filter_is_jaxatt_monte_carlo_on_the_same_imu(tmp_path)
     assert cli.main([*argv, "--gains", str(gains), "--observer", "madgwick"]) == 2  # gains of another filter
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--observer", "mahony", "--duration", "3", "--dt", "0.02"],
+        [
+            "--observer",
+            "complementary",
+            "--scenario",
+            "rotating",
+            "--duration",
+            "3",
+            "--dt",
+            "0.01",
+            "--vector-noise",
+            "0.02",
+        ],
+    ],
+)
+def test_simulate_plot_of_an_ahrs_filter_or_the_complementary_observer_draws_the_runs_it_scored(tmp_path, argv):
+    """--plot of a study without a figure of its paper's (an AHRS filter, Trumpf et al.'s observer) draws the angle
+    error of every run: the traces behind it (saved in the runs file) end at each run's final angle error as the
+    metrics reduced it, they sit on a regular grid of at most 500 times, and the figure is a PNG with data drawn."""
+    from test_notebooks import check_figures
+
+    out, fig = tmp_path / "sim.json", tmp_path / "sim.png"
+    assert cli.main(["simulate", *argv, "--runs", "4", "--quiet", "--json", str(out), "--plot", str(fig)]) == 0
+    d = json.loads(out.read_text())
+    assert d["plot"] == str(fig)
+    check_figures(tmp_path, ["sim"])
+    with np.load(f"{out}.runs.npz") as z:
+        t, angle = z["0/traces/t"], z["0/traces/angle_error_deg"]
+    assert angle.dtype == np.float32 and angle.shape == t.shape and t.shape[0] == 4
+    steps = np.diff(t[0])
+    assert 3.0 / 500 <= steps[0] and np.allclose(steps, steps[0]) and t[0, -1] == pytest.approx(3.0)
+    final = d["metrics"]["final_angle_error_deg"]["per_run"]
+    np.testing.assert_allclose(angle[:, -1], final, rtol=1e-6)
+    assert np.ptp(final) > 0  # four runs, four noise draws: the comparison is run by run
+
+
 #: The simulate flags each kind of observer refuses (the set-up flags of the other kinds).
 _PAPER_FLAGS = ["trajectory", "latitude", "reference", "gyro_arw", "r0", "x1_init", "m_init", "integrator", "x2_0"]
 _PAPER_FLAGS += ["v0", "epsilon"]

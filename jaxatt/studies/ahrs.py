@@ -6,7 +6,9 @@ The scenario is :func:`jaxatt.api.ahrs_scenario` (ENU; gyro rad/s with a constan
 accelerometer m/s^2, magnetometer uT; the rotation rates of the NLIO paper's Section 5, true start = identity).
 Each filter sets itself up from the first sample, as on a recording, with its shipped (or default) gains. The
 errors are :func:`jaxatt.api.ahrs_errors`: roll, pitch, yaw (deg, ZYX) and, for a filter that estimates it, the
-gyro bias (deg/s). No paper publishes Monte Carlo numbers for this set-up.
+gyro bias (deg/s). No paper publishes Monte Carlo numbers for this set-up. The figure (``--plot``) is every run's
+rotation-angle error (deg) against time (s): median, 25-75 % and 5-95 % bands
+(:meth:`jaxatt.studies.base.Study.angle_error_figure`).
 """
 
 from __future__ import annotations
@@ -138,6 +140,9 @@ class AhrsStudy(base.Study):
 
     def format_report(self, payload):
         return base.table(self.rows, payload, self.units)
+
+    trace = base.Study.angle_error_trace
+    plot = base.Study.angle_error_figure
 
 
 STUDY = AhrsStudy()

@@ -36,6 +36,15 @@ from ..progress import done_reporting, report_line
 __all__ = ["Study", "Setup", "reproduce", "evaluate", "table", "config_dict", "check_settings", "setup_params"]
 
 
+#: About how many times per run :meth:`Study.angle_error_trace` keeps for the figure.
+FIGURE_POINTS = 500
+
+
+def _angle_trace(truth, out, errors, angle_deg):
+    """The angle-error figure's record: t (s) and the rotation-angle error (deg, float32)."""
+    return {"t": truth.t, "angle_error_deg": angle_deg.astype(np.float32)}
+
+
 def paper_dtype():
     """The arithmetic of a study's paper gains and runs: float64 when JAX's x64 mode is on (the papers' Earth rate,
     7.3e-5 rad/s beside body rates of rad/s, needs it); float32 otherwise, with a warning (jaxatt never switches the
@@ -320,6 +329,36 @@ class Study(abc.ABC):
     def plot(self, cfg, payload: dict, results: Mapping[str, Any], path: str, dtype=None) -> None:
         """Write the study's figure to ``path`` (``results``: label -> MonteCarloResult)."""
         raise ValueError(f"{self.name} has no figure")
+
+    # ---- the angle-error figure of a study whose paper has none: ``trace = Study.angle_error_trace`` and
+    # ``plot = Study.angle_error_figure`` in the subclass ----------------------------------------------------
+    def angle_error_trace(self, cfg, plotting: bool) -> Tuple[int, Optional[Callable]]:
+        """When plotting, each run's rotation-angle error (deg, float32) at about :data:`FIGURE_POINTS` times: the
+        largest record interval that divides the engine's noise block and leaves that many; no traces otherwise."""
+        if not plotting:
+            return 0, None
+        from ..engine import BLOCK
+
+        most = max(1, int(round(cfg.duration / cfg.dt)) // FIGURE_POINTS)
+        return max(d for d in range(1, min(most, BLOCK) + 1) if BLOCK % d == 0), _angle_trace
+
+    def angle_error_figure(self, cfg, payload: dict, results: Mapping[str, Any], path: str, dtype=None) -> None:
+        """The rotation-angle error (deg, log scale) against time (s) over every run: the median and the 5-95 % /
+        25-75 % bands per observer, and the start of the metrics' window."""
+        from .. import plot
+
+        plt = plot._plt()
+        fig, ax = plt.subplots(figsize=(7, 3.4), constrained_layout=True)
+        for i, (label, res) in enumerate(results.items()):
+            traces = {"t": res.traces["t"], "angle_error_deg": res.traces["angle_error_deg"]}
+            runs = traces["t"].shape[0]
+            plot.angle_error_plot(mc_traces=traces, ax=ax, color=f"C{i}", mc_label=f"{label}: median ({runs} runs)")
+        ws = self.window_start(cfg)
+        ax.axvline(ws, color="0.4", lw=0.8, ls="--", label=f"metrics from t = {ws:g} s")
+        ax.legend(loc="best", fontsize=8)
+        plot._tidy_log_axis(ax)
+        ax.set_title(f"{payload.get('experiment', self.name)}: median, 25-75 % and 5-95 % of the runs", fontsize=10)
+        plot.save(fig, path, close=True)
 
     # ---- the fitter's view ----------------------------------------------------------------------------
     def compared(self, cfg, label: str) -> Tuple[Any, Any]:
