@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import engine, frames, units
+from . import engine, frames
 from .observers import registry
 from .types import ImuSample, Observer
 
@@ -585,8 +585,9 @@ def filter(
             must be fixed by gravity and the magnetic field (every registered 9D observer); a 6D observer
             (no magnetometer) is smoothed in inclination only.
         gyr_unit, acc_unit, time_unit: the units ``gyr``, ``acc`` and ``t`` / ``dt`` come in
-            (:mod:`jaxatt.units`: "rad/s" or "deg/s"; "m/s^2" or "g"; "s", "ms", "us" or "ns"), converted to rad/s,
-            m/s^2 and s before anything else; the estimate's ``t`` is in s.
+            (:data:`jaxatt.frames.GYR_UNITS` "rad/s", "deg/s", "dps", "mdps"; :data:`~jaxatt.frames.ACC_UNITS`
+            "m/s^2", "g", "mg"; :data:`~jaxatt.frames.TIME_UNITS` "s", "ms", "us", "ns"), converted to rad/s,
+            m/s^2 and s before anything else (:func:`jaxatt.frames.to_si`); the estimate's ``t`` is in s.
     Raises ValueError (one line naming the argument) on bad input, FloatingPointError when an estimate is not
     finite (the first row and time are named).
     """
@@ -594,13 +595,13 @@ def filter(
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)
-    time_factor = units.factor("time_unit", time_unit)
-    gyr_a = units.to_si(_vectors("gyr", gyr, None, True), "gyr_unit", gyr_unit)
+    time_factor = frames.unit_factor("time_unit", time_unit)
+    gyr_a = frames.to_si(_vectors("gyr", gyr, None, True), "gyr_unit", gyr_unit)
     assert gyr_a is not None  # required: _vectors raised on None
     n = gyr_a.shape[0]
     if n < 2:
         raise ValueError(f"gyr must have at least 2 samples, got {n}")
-    acc_a = units.to_si(_vectors("acc", acc, n, False), "acc_unit", acc_unit)
+    acc_a = frames.to_si(_vectors("acc", acc, n, False), "acc_unit", acc_unit)
     mag_a = _vectors("mag", mag, n, False)
     if time_factor != 1.0 and t is not None and np.asarray(t).dtype.kind in "mM":
         raise ValueError(

@@ -26,7 +26,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from . import units
+from .frames import ACC_UNITS, GYR_UNITS, TIME_UNITS
 from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
@@ -195,7 +195,7 @@ def _parser() -> argparse.ArgumentParser:
         "--columns",
         default=None,
         help="the CSV log's own column names, e.g. t=time,gyr_x=GyroX,gyr_y=GyroY,gyr_z=GyroZ (the format's names: "
-        "t, gyr_*, acc_*, mag_*, quat_*; units are set by the unit flags)",
+        "t, gyr_*, acc_*, mag_*, quat_*; units are set by the unit flags; quote it if a name has spaces)",
     )
     fp.add_argument(
         "--observer",
@@ -223,17 +223,17 @@ def _parser() -> argparse.ArgumentParser:
         help="sample period, s (default: the log's timestamps; a log without t needs it)",
     )
     fp.add_argument(
-        "--gyr-unit", choices=units.GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
+        "--gyr-unit", choices=GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
     )
     fp.add_argument(
         "--acc-unit",
-        choices=units.ACC_UNITS,
+        choices=ACC_UNITS,
         default="m/s^2",
         help="unit of the log's accelerometer columns (default m/s^2)",
     )
     fp.add_argument(
         "--time-unit",
-        choices=units.TIME_UNITS,
+        choices=TIME_UNITS,
         default="s",
         help="unit of the log's t column (default s); the estimates' t is written in s",
     )
@@ -420,6 +420,7 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="the CSV log's own column names, e.g. t=time,acc_x=AccX,... (the format's names: t, gyr_*, acc_*, mag_*)",
     )
+    ep.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="unit of the log's t column (default s)")
     ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
     ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
     ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
@@ -999,14 +1000,19 @@ def _check_log_path(path: str) -> None:
         raise UserError(f"--log {path}: " + ("not a file" if Path(path).exists() else "not found"))
 
 
-def _load_any_log(path: str, dt: Optional[float] = None, columns: Optional[str] = None):
+def _load_any_log(path: str, dt: Optional[float] = None, columns: Optional[str] = None, **units):
     """(samples, rate in Hz or None) of a CSV / NPZ log or a BROAD trial; ``dt`` (s) times a log without ``t``;
-    ``columns`` (``--columns``): the CSV log's own column names."""
+    ``columns`` (``--columns``): the CSV log's own column names; ``units``: ``gyr_unit``, ``acc_unit``,
+    ``time_unit`` of a CSV / NPZ log (``--gyr-unit``, ...), converted to rad/s, m/s^2 and s."""
     from pathlib import Path
 
     from .data import broad, logs
 
     _check_log_path(path)
+    if Path(path).suffix.lower() in (".hdf5", ".h5"):
+        given = [f"--{k.replace('_', '-')} {v}" for k, v in units.items() if v != _SI_UNITS[k]]
+        if given:
+            raise UserError(f"{', '.join(given)}: a BROAD trial is in rad/s, m/s^2 and s already")
     names = None
     if columns is not None:
         if Path(path).suffix.lower() != ".csv":
@@ -1019,17 +1025,20 @@ def _load_any_log(path: str, dt: Optional[float] = None, columns: Optional[str] 
         tr = broad.load_trial(path)
         return tr.samples, tr.rate_hz
     try:
-        return logs.load_log(path, dt=dt, columns=names), None
+        return logs.load_log(path, dt=dt, columns=names, **units), None
     except ValueError as e:
         if dt is None:
             raise
         try:  # --dt times the log: timestamps that are broken need not stop it
-            samples = logs.load_log(path, dt=dt, replace_t=True, columns=names)
+            samples = logs.load_log(path, dt=dt, replace_t=True, columns=names, **units)
         except ValueError:
             raise e from None
         warnings.warn(f"the log's timestamps are not read, --dt {dt:g} s times it: {e}", stacklevel=1)
         return samples, None
 
+
+#: jaxatt's own units: the defaults of the unit flags
+_SI_UNITS = {"gyr_unit": "rad/s", "acc_unit": "m/s^2", "time_unit": "s"}
 
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
 FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
@@ -1066,16 +1075,6 @@ def _observer_and_params(args):
     return args.observer, args.gains
 
 
-def _in_si_units(samples, args):
-    """The log in rad/s, m/s^2 and s from ``--gyr-unit``, ``--acc-unit`` and ``--time-unit`` (mag is left in
-    its own unit)."""
-    return samples._replace(
-        t=units.to_si(samples.t, "time_unit", args.time_unit),
-        gyr=units.to_si(samples.gyr, "gyr_unit", args.gyr_unit),
-        acc=units.to_si(samples.acc, "acc_unit", args.acc_unit),
-    )
-
-
 def _filter(args) -> int:
     from . import api, io
 
@@ -1088,9 +1087,12 @@ def _filter(args) -> int:
     from .progress import Heartbeat
 
     if args.dt is not None and args.time_unit != "s":
-        raise ValueError(f"--time-unit {args.time_unit} and --dt: --dt replaces the log's t, give one of them")
-    samples, rate = _load_any_log(args.log, args.dt, args.columns)
-    samples = _in_si_units(samples, args)
+        raise ValueError(
+            f"--time-unit {args.time_unit} and --dt: --time-unit is the unit of the log's t column, and --dt (s) "
+            "times the log instead of it; give one of them"
+        )
+    units = {"gyr_unit": args.gyr_unit, "acc_unit": args.acc_unit, "time_unit": args.time_unit}
+    samples, rate = _load_any_log(args.log, args.dt, args.columns, **units)
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
     if args.dt is not None and len(samples.t) > 1:
         d = np.diff(np.asarray(samples.t, float))
@@ -1158,7 +1160,7 @@ def _excitation(args) -> int:
 
     io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--log": args.log})
     io.check_figure_path(args.plot, "--plot", inputs={"--log": args.log, "--json": args.json})
-    ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame", "--columns")
+    ignored = ("--duration", "--dt") if args.log else ("--mag-ref", "--frame", "--columns", "--time-unit")
     given = [flag for flag in ignored if getattr(args, flag[2:].replace("-", "_")) is not None]
     if given:
         what = "a log (it has its own timestamps)" if args.log else "a scenario (its references are built in)"
@@ -1176,7 +1178,7 @@ def _excitation(args) -> int:
     else:
         from .observers import complementary as comp
 
-        samples = _load_any_log(args.log, columns=args.columns)[0]
+        samples = _load_any_log(args.log, columns=args.columns, time_unit=args.time_unit or "s")[0]
         if samples.acc is None and samples.mag is None:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         args.frame = args.frame or "NED"

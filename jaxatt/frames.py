@@ -11,8 +11,12 @@ and BROAD. A quaternion q (Hamilton, scalar first (w, x, y, z)) maps sensor coor
 :func:`change_frame` moves it to another one by a fixed left multiplication (VQF's FAQ recipe). Vectors move with
 :func:`change_vector_frame`. For scipy, :func:`to_scipy` / :func:`from_scipy` handle its scalar-last order.
 
-Units: the helpers below convert to jaxatt's SI inputs (rad/s, m/s^2); magnetometer data may stay in any unit
-(the observers that need a reference take it in the data's unit).
+Units: jaxatt works in rad/s (gyro), m/s^2 (accelerometer, specific force) and s (time); magnetometer data may
+stay in any unit (the observers that need a reference take it in the data's unit). A recording in other units is
+converted once, at the boundary, by :func:`to_si` from the tables :data:`GYR_UNITS`, :data:`ACC_UNITS` and
+:data:`TIME_UNITS`: ``jaxatt.filter(..., gyr_unit="deg/s", acc_unit="g", time_unit="ms")``,
+``jaxatt.data.logs.load_log(path, gyr_unit=...)`` or ``jaxatt filter --gyr-unit deg/s``. The helpers at the end
+(:func:`deg_s_to_rad_s`, ...) convert arrays by hand.
 """
 
 from __future__ import annotations
@@ -36,6 +40,11 @@ __all__ = [
     "from_scipy",
     "check_frame",
     "STANDARD_GRAVITY",
+    "GYR_UNITS",
+    "ACC_UNITS",
+    "TIME_UNITS",
+    "unit_factor",
+    "to_si",
     "deg_s_to_rad_s",
     "rad_s_to_deg_s",
     "g_to_m_s2",
@@ -57,6 +66,36 @@ _FROM_ENU = {
 
 #: Standard gravity (m/s^2), for accelerometers that report in g.
 STANDARD_GRAVITY = 9.80665
+
+#: Factor from each gyro unit to rad/s (dps: deg/s; mdps: millidegrees per second, as MEMS gyros report).
+GYR_UNITS = {"rad/s": 1.0, "deg/s": math.pi / 180.0, "dps": math.pi / 180.0, "mdps": math.pi / 180e3}
+#: Factor from each accelerometer unit to m/s^2 (g and mg: standard gravity and a thousandth of it).
+ACC_UNITS = {"m/s^2": 1.0, "m/s2": 1.0, "g": STANDARD_GRAVITY, "mg": STANDARD_GRAVITY / 1e3}
+#: Factor from each time unit to s.
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+_UNIT_TABLES = {"gyr_unit": GYR_UNITS, "acc_unit": ACC_UNITS, "time_unit": TIME_UNITS}
+
+
+def unit_factor(argument: str, unit: str) -> float:
+    """The factor from ``unit`` to jaxatt's unit for ``argument`` ("gyr_unit", "acc_unit" or "time_unit");
+    ValueError (one line naming the argument and its choices) otherwise."""
+    table = _UNIT_TABLES.get(argument)
+    if table is None:
+        raise ValueError(f"unit argument must be one of {', '.join(_UNIT_TABLES)}, got {argument!r}")
+    if not isinstance(unit, str) or unit not in table:
+        raise ValueError(f"{argument} must be one of {', '.join(repr(u) for u in table)}, got {unit!r}")
+    return table[unit]
+
+
+def to_si(a, argument: str, unit: str):
+    """``a`` (an array, or None) converted from ``unit`` to jaxatt's unit for ``argument`` (:func:`unit_factor`),
+    in its own float precision (a float32 recording stays float32; integers become float64); ``a`` itself when
+    ``unit`` is already jaxatt's."""
+    f = unit_factor(argument, unit)
+    if a is None or f == 1.0:
+        return a
+    a = np.asarray(a)
+    return a * np.asarray(f, a.dtype if a.dtype.kind == "f" else np.float64)
 
 
 def check_frame(frame: str, name: str = "frame") -> str:

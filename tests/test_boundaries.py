@@ -72,6 +72,7 @@ def make_files(d: Path) -> None:
     _write_csv(d / "huge_gyr.csv", t, gyr * 1e300, acc, mag)
     _write_csv(d / "backwards.csv", t[::-1], gyr, acc, mag)
     (d / "no_header.csv").write_text("0,0,0,0\n0.01,0,0,0\n")
+    (d / "dated.csv").write_text("t,gyr_x,gyr_y,gyr_z\n2024-05-01 12:00:00.00,0,0,0\n2024-05-01 12:00:00.01,0,0,0\n")
     # float32 Unix times: 1.7e9 s in float32 steps by 128 s, so the 0.01-s samples collide
     np.savez(d / "unix_float32.npz", t=(1.7e9 + t).astype(np.float32), gyr=gyr, acc=acc, mag=mag)
     (d / "empty.csv").write_text("")
@@ -143,6 +144,15 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/log.csv", "--observer", "nomodule:X", "--out", "{d}/keep.csv"], r"cannot import"),
     (["filter", "--log", "{d}/log.csv", "--params", "a:b", "--out", "{d}/keep.csv"], r"--params applies"),
     (["filter", "--log", "{d}/log.csv", "--columns", "gx", "--out", "{d}/keep.csv"], r"--columns must be 'name="),
+    (
+        ["filter", "--log", "{d}/dated.csv", "--time-unit", "ms", "--out", "{d}/keep.csv"],
+        r"dated\.csv: time_unit 'ms' \(--time-unit\) applies to numeric timestamps, and its t column holds date-t",
+    ),
+    (
+        ["filter", "--log", "{d}/trials_ok/01_ok.hdf5", "--gyr-unit", "deg/s", "--out", "{d}/keep.csv"],
+        r"--gyr-unit deg/s: a BROAD trial is in rad/s, m/s\^2 and s already",
+    ),
+    (["filter", "--log", "{d}/log.csv", "--gyr-unit", "rpm", "--out", "{d}/keep.csv"], r"argument --gyr-unit: inva"),
     (["filter", "--log", "{d}/log.csv", "--columns", "w_x=gx", "--out", "{d}/keep.csv"], r"--columns: 'w_x' is not"),
     (["filter", "--log", "{d}/log.csv", "--columns", "t=time", "--out", "{d}/keep.csv"], r"column 'time' \(given in"),
     (
@@ -239,6 +249,7 @@ BAD_INPUT = [
     (["excitation", "--scenario", "rotating", "--plot", "{d}/folder"], r"--plot .*folder"),
     (["excitation", "--scenario", "nope"], r"argument --scenario"),
     (["excitation", "--scenario", "rotating", "--columns", "t=time"], r"--columns does not apply to a scenario"),
+    (["excitation", "--scenario", "rotating", "--time-unit", "ms"], r"--time-unit does not apply to a scenario"),
     (["excitation", "--log", "{d}/log.csv", "--mag-ref", "20,0,-40", "--columns", "acc_x=ax"], r"column 'ax' \(given"),
     (
         ["excitation", "--scenario", "rotating", "--plot", "{d}/fig.txt"],

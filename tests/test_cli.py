@@ -114,6 +114,21 @@ def test_excitation_of_a_log_file(tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(["excitation", "--log", str(path), "--mag-ref", "-0.2,0,-0.4", "--window", "2"]) == 0
     assert "exciting in every window" in capsys.readouterr().out
+    # the same log from a logger (ms timestamps, its own column names): --columns and --time-unit give the same
+    # measures, written to JSON, as the log in s
+    si, ms = tmp_path / "si.json", tmp_path / "ms.json"
+    assert cli.main(["excitation", "--log", str(path), "--mag-ref", "0.2,0,0.4", "--json", str(si)]) == 0
+    raw = tmp_path / "raw.csv"
+    logs.save_log(raw, ImuSample(t * 1e3, np.tile([0.0, 0.0, 0.5], (len(t), 1)), up, mag))
+    text = raw.read_text().splitlines()
+    raw.write_text("\n".join([text[0].replace("t,", "time_ms,").replace("acc_", "a")] + text[1:]) + "\n")
+    cols = "t=time_ms,acc_x=ax,acc_y=ay,acc_z=az"
+    argv = ["excitation", "--log", str(raw), "--columns", cols, "--time-unit", "ms", "--mag-ref", "0.2,0,0.4"]
+    assert cli.main([*argv, "--json", str(ms)]) == 0
+    a, b = json.loads(si.read_text()), json.loads(ms.read_text())
+    assert a["window_s"] == b["window_s"] == 5.0
+    for k in ("t_start", "t_end", "lambda2", "condition"):
+        np.testing.assert_allclose(b["measures"][k], a["measures"][k], rtol=1e-9, atol=1e-12, err_msg=k)
 
 
 # ---------------------------------------------------------------------------------------------------------

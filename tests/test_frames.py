@@ -114,3 +114,45 @@ def test_frames_keep_batches_and_lists():
     assert frames.change_frame(q, "NED").shape == (2, 3, 4)
     np.testing.assert_array_equal(frames.to_xyzw([1.0, 2.0, 3.0, 4.0]), [2.0, 3.0, 4.0, 1.0])
     np.testing.assert_array_equal(frames.from_xyzw(frames.to_xyzw(q)), q)
+
+
+def test_unit_tables_are_the_definitions_and_agree_with_the_helpers():
+    """The factors of the unit arguments (gyr_unit, acc_unit, time_unit) are the definitions (deg = pi / 180
+    rad, standard gravity 9.80665 m/s^2, SI prefixes) and give what the hand conversion helpers give."""
+    x = np.array([[180.0, -90.0, 1.5]])
+    np.testing.assert_allclose(frames.to_si(x, "gyr_unit", "deg/s"), frames.deg_s_to_rad_s(x), rtol=1e-15)
+    np.testing.assert_allclose(frames.to_si(x, "gyr_unit", "mdps") * 1e3, frames.deg_s_to_rad_s(x), rtol=1e-15)
+    assert frames.unit_factor("gyr_unit", "dps") == frames.unit_factor("gyr_unit", "deg/s")
+    np.testing.assert_allclose(frames.to_si(x, "acc_unit", "g"), frames.g_to_m_s2(x), rtol=1e-15)
+    np.testing.assert_allclose(frames.to_si(x, "acc_unit", "mg") * 1e3, frames.g_to_m_s2(x), rtol=1e-15)
+    assert frames.unit_factor("acc_unit", "g") == 9.80665 and frames.unit_factor("acc_unit", "m/s2") == 1.0
+    assert [frames.unit_factor("time_unit", u) for u in ("s", "ms", "us", "ns")] == [1.0, 1e-3, 1e-6, 1e-9]
+    for argument, own in (("gyr_unit", "rad/s"), ("acc_unit", "m/s^2"), ("time_unit", "s")):
+        assert frames.unit_factor(argument, own) == 1.0
+
+
+def test_to_si_keeps_float32_makes_integers_float64_and_leaves_si_alone():
+    a32 = np.array([[180.0, -90.0, 1.0]], np.float32)
+    out = frames.to_si(a32, "gyr_unit", "deg/s")
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, np.deg2rad(a32.astype(np.float64)), rtol=1e-7)
+    ints = frames.to_si(np.array([1, 2, 3]), "time_unit", "ms")
+    assert ints.dtype == np.float64 and np.array_equal(ints, [1e-3, 2e-3, 3e-3])
+    assert frames.to_si(None, "acc_unit", "g") is None
+    same = np.ones(3)
+    assert frames.to_si(same, "acc_unit", "m/s^2") is same  # already in jaxatt's unit: not copied
+
+
+@pytest.mark.parametrize(
+    "argument, unit, match",
+    [
+        ("gyr_unit", "rpm", r"gyr_unit must be one of 'rad/s', 'deg/s', 'dps', 'mdps', got 'rpm'"),
+        ("acc_unit", None, r"acc_unit must be one of 'm/s\^2', 'm/s2', 'g', 'mg', got None"),
+        ("time_unit", "sec", r"time_unit must be one of 's', 'ms', 'us', 'ns', got 'sec'"),
+        ("mag_unit", "uT", r"unit argument must be one of gyr_unit, acc_unit, time_unit, got 'mag_unit'"),
+    ],
+)
+def test_an_unknown_unit_is_one_line_naming_the_argument(argument, unit, match):
+    with pytest.raises(ValueError, match=match) as e:
+        frames.to_si(np.ones(3), argument, unit)
+    assert "\n" not in str(e.value)

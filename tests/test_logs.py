@@ -102,12 +102,18 @@ def test_csv_as_loggers_and_spreadsheets_write_it(tmp_path):
         with pytest.raises(ValueError, match=match):
             logs.load_log(p)
 
-    said("time,gyr_x,gyr_y,gyr_z", r"required column 't' missing .*; 'time' looks like it: name it 't'$")
-    said("T,GYR_X,GYR_Y,GYR_Z", r"'T' looks like it: name it 't'")
-    said("t [s],gyr_x [rad/s],gyr_y [rad/s],gyr_z [rad/s]", r"'t \[s\]' looks like it: name it 't'")
-    said("t,gyr_x [deg/s],gyr_y [deg/s],gyr_z [deg/s]", r"name it 'gyr_x' and convert it to rad/s")
-    said("t,gyro_x,gyro_y,gyro_z", r"required column 'gyr_x' missing .*'gyro_x' looks like it: name it 'gyr_x'")
-    said("t,gx,gy,gz", r"'gyr_x' missing .*; the columns read are t, gyr_x, gyr_y, gyr_z and the groups")
+    said(
+        "time,gyr_x,gyr_y,gyr_z",
+        r"column 't' missing .*; 'time' looks like it: read it with columns=\{'t': 'time', \.\.\.\} / --columns$",
+    )
+    said("T,GYR_X,GYR_Y,GYR_Z", r"'T' looks like it: read it with columns=\{'t': 'T'")
+    said("t [s],gyr_x [rad/s],gyr_y [rad/s],gyr_z [rad/s]", r"'t \[s\]' looks like it: read it with columns=")
+    said("t,gyr_x [deg/s],gyr_y [deg/s],gyr_z [deg/s]", r"/ --columns and give its unit: gyr_unit='deg/s' / --gyr-unit")
+    said("t,gyro_x,gyro_y,gyro_z", r"column 'gyr_x' missing .*'gyro_x' looks like it: read it with columns=\{'gyr_x'")
+    said(
+        "t,gx,gy,gz",
+        r"'gyr_x' missing .*; the columns read are t, gyr_x, .*; a file's own names are read with columns=",
+    )
     said(",gyr_x,gyr_y,gyr_z", r"the first column has no name: if it holds the times, name it 't'")
     p.write_text("t,gyr_x,gyr_y,gyr_z,magn_x,magn_y,magn_z\n0,1,2,3,4,5,6\n")
     with pytest.warns(UserWarning, match=r"columns \['magn_x', 'magn_y', 'magn_z'\] are not read: the mag columns are"):
@@ -260,7 +266,8 @@ def test_csv_fast_reader_equals_the_checked_reader(tmp_path):
     fast = logs.load_csv(p)
     with open(p, newline="") as f:
         header = f.readline().strip().split(",")
-        checked = logs._read_table_checked(f, header, list(range(len(header))), str(p))
+        checked, dated = logs._read_table_checked(f, header, list(range(len(header))), str(p))
+    assert not dated
     np.testing.assert_array_equal(fast.t, checked[:, 0])
     np.testing.assert_array_equal(fast.gyr, checked[:, 1:4])
     np.testing.assert_array_equal(fast.mag, checked[:, 7:10])
@@ -391,6 +398,11 @@ def test_a_logger_s_own_column_names_read_through_columns(tmp_path):
         ("gyr_x:GyroX", r"columns must be 'name=column,...' \(e.g. 'gyr_x=GyroX,t=time'\), got 'gyr_x:GyroX'"),
         (["gyr_x"], r"columns must be a mapping of the format's column names to the file's"),
         ({"gyr_x": "GyroQ"}, r"x.csv: column 'GyroQ' \(given in columns\) is not in the header: \['t', 'gyr_x'"),
+        ("gyr_x=a,gyr_x=b", r"columns: 'gyr_x' is given more than once"),
+        (
+            {"GyroX": "gyr_x"},
+            r"'GyroX' is not one of .* \(the names on the left are jaxatt's, on the right the file's\)",
+        ),
     ],
 )
 def test_bad_columns_are_one_line_naming_the_entry(tmp_path, columns, match):
@@ -401,3 +413,55 @@ def test_bad_columns_are_one_line_naming_the_entry(tmp_path, columns, match):
     assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match=r"columns applies to a CSV log, not to an NPZ file"):
         logs.load_log(tmp_path / "x.npz", columns={"gyr_x": "g"})
+
+
+def test_an_incomplete_mapping_is_said_with_the_file_s_own_header(tmp_path):
+    p = tmp_path / "x.csv"
+    p.write_text("time,GyroX,GyroY,GyroZ,AccX,AccY,AccZ\n0,1,2,3,4,5,6\n0.01,1,2,3,4,5,6\n")
+    cols = {"t": "time", "gyr_x": "GyroX", "gyr_y": "GyroY", "gyr_z": "GyroZ"}
+    with pytest.raises(ValueError, match=r"group 'acc' is incomplete, missing \['acc_y', 'acc_z'\] \(add them to col"):
+        logs.load_log(p, columns={**cols, "acc_x": "AccX"})
+    with pytest.raises(ValueError, match=r"'gyr_z' missing \(header: \['time', 'GyroX', 'GyroY', 'GyroZ', 'AccX'"):
+        logs.load_log(p, columns={"t": "time", "gyr_x": "GyroX", "gyr_y": "GyroY"})
+
+
+def test_a_log_in_a_logger_s_units_reads_as_the_same_log_in_si_units(tmp_path):
+    """gyr_unit / acc_unit / time_unit of load_log (CSV, with quoted names after ", ", and NPZ) give the log
+    written in rad/s, m/s^2 and s; date-time stamps carry their own unit and a log timed by dt has no t column,
+    so time_unit is refused for them in one line."""
+    s, _ = make_log(with_mag=False)
+    units = {"gyr_unit": "mdps", "acc_unit": "mg", "time_unit": "us"}
+    raw = s._replace(t=s.t * 1e6, gyr=np.rad2deg(s.gyr) * 1e3, acc=s.acc / 9.80665 * 1e3)
+    p = tmp_path / "raw.csv"
+    logs.save_log(p, raw)
+    lines = p.read_text().splitlines()
+    quoted = ", ".join(f'"{h} (logger)"' for h in lines[0].split(","))  # "t (logger)", "gyr_x (logger)", ...
+    p.write_text("\n".join([quoted] + lines[1:]) + "\n")
+    cols = {h: f"{h} (logger)" for h in lines[0].split(",")}
+    back = logs.load_log(p, columns=cols, **units)
+    for name in ("t", "gyr", "acc"):
+        np.testing.assert_allclose(getattr(back, name), getattr(s, name), rtol=1e-13, err_msg=name)
+    logs.save_log(tmp_path / "raw.npz", raw)
+    back = logs.load_log(tmp_path / "raw.npz", **units)
+    for name in ("t", "gyr", "acc"):
+        np.testing.assert_allclose(getattr(back, name), getattr(s, name), rtol=1e-13, err_msg=name)
+    dated = tmp_path / "dated.csv"
+    dated.write_text("t,gyr_x,gyr_y,gyr_z\n2024-05-01 12:00:00.000,0,0,0\n2024-05-01 12:00:00.010,0,0,0\n")
+    np.testing.assert_allclose(logs.load_log(dated).t, [0.0, 0.01])
+    with pytest.raises(
+        ValueError, match=r"dated.csv: time_unit 'ms' \(--time-unit\) applies to numeric .* date-times, which carry"
+    ):
+        logs.load_log(dated, time_unit="ms")
+    np.savez(
+        tmp_path / "dated.npz",
+        t=np.array(["2024-05-01T12:00", "2024-05-01T12:01"], "datetime64[ms]"),
+        gyr=np.zeros((2, 3)),
+    )
+    with pytest.raises(ValueError, match=r"dated.npz: time_unit 'ms' \(--time-unit\) applies to numeric .* date-times"):
+        logs.load_log(tmp_path / "dated.npz", time_unit="ms")
+    with pytest.raises(
+        ValueError, match=r"time_unit 'ms' \(--time-unit\) applies to numeric timestamps, and it is timed by dt \(s\)"
+    ):
+        logs.load_log(p, columns=cols, dt=0.01, replace_t=True, time_unit="ms")
+    with pytest.raises(ValueError, match=r"gyr_unit must be one of 'rad/s', 'deg/s', 'dps', 'mdps', got 'rpm'"):
+        logs.load_log(p, gyr_unit="rpm")

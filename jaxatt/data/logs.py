@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import functools
 import re
 import warnings
 import zipfile
@@ -36,7 +37,7 @@ from typing import Dict, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
-from .. import io
+from .. import frames, io
 from ..types import ImuSample
 
 __all__ = [
@@ -248,10 +249,12 @@ def _read_table_fast(f, columns: list, n_header: int, sep: str = ",") -> Optiona
     return table[:, columns]
 
 
-def _read_table_checked(f, header: list, columns: list, src: str, sep: str = ",", first_line: int = 2) -> np.ndarray:
+def _read_table_checked(
+    f, header: list, columns: list, src: str, sep: str = ",", first_line: int = 2
+) -> Tuple[np.ndarray, bool]:
     """The data rows' ``columns`` cell by cell: empty cells are NaN, anything else that is not a number is an
     error naming its line (in the file: ``first_line`` is the first data row's) and column (with a semicolon or
-    tab separator a decimal comma is a decimal point)."""
+    tab separator a decimal comma is a decimal point). Returns (table, whether ``t`` held date-times)."""
     reader = csv.reader(f, delimiter=sep)
     rows, lines, last = [], [], 0
     try:
@@ -272,14 +275,16 @@ def _read_table_checked(f, header: list, columns: list, src: str, sep: str = ","
         if len(r) < need or any(c.strip() for c in r[len(header) :]):  # short, or values beyond the header
             quote = ': a quote (") opened there is never closed' if any("\n" in c for c in r) else ""
             raise ValueError(f"{src}: line {lines[k]} has {len(r)} fields, header has {len(header)}{quote}")
+    dated = False
     for j, i in enumerate(columns):
         cells = [r[i].strip() for r in rows]
         if header[i] == "t" and _datetime_column(cells):
             table[:, j] = _datetime_seconds(cells, src, lines)
+            dated = True
             continue
         for k, c in enumerate(cells):
             table[k, j] = _parse_float(c, lines[k], header[i], src, decimal_comma=sep != ",")
-    return table
+    return table, dated
 
 
 def _datetime_column(cells: list) -> bool:
@@ -339,13 +344,19 @@ def check_columns(columns) -> Dict[str, str]:
         pairs = [p.strip() for p in columns.split(",") if p.strip()]
         if not pairs or any(p.count("=") != 1 for p in pairs):
             raise ValueError(f"columns must be 'name=column,...' (e.g. 'gyr_x=GyroX,t=time'), got {columns!r}")
-        columns = dict((k.strip(), v.strip()) for k, v in (p.split("=") for p in pairs))
+        items = [(k.strip(), v.strip()) for k, v in (p.split("=") for p in pairs)]
+        keys = [k for k, _ in items]
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        if twice:
+            raise ValueError(f"columns: {twice[0]!r} is given more than once")
+        columns = dict(items)
     if not isinstance(columns, Mapping):
         raise ValueError(f"columns must be a mapping of the format's column names to the file's, got {columns!r}")
     names = [c for cols in CSV_COLUMNS.values() for c in cols]
     for k, v in columns.items():
         if k not in names:
-            raise ValueError(f"columns: {k!r} is not one of the format's columns ({', '.join(names)})")
+            turned = " (the names on the left are jaxatt's, on the right the file's)" if v in names else ""
+            raise ValueError(f"columns: {k!r} is not one of the format's columns ({', '.join(names)}){turned}")
         if not isinstance(v, str) or not v:
             raise ValueError(f"columns: the file's column for {k!r} must be a name, got {v!r}")
     given = list(columns.values())
@@ -362,17 +373,22 @@ def load_csv(
     dt: Optional[float] = None,
     replace_t: bool = False,
     columns: Union[Mapping[str, str], str, None] = None,
+    gyr_unit: str = "rad/s",
+    acc_unit: str = "m/s^2",
+    time_unit: str = "s",
 ):
     """Read a CSV log (see the module docstring). Returns ImuSample (or (ImuSample, quat_true or None)).
 
     ``dt`` (s): the sample period of a log without a ``t`` column (t = 0, dt, 2 dt, ...); a ``t`` column, when
     there is one, is read and ``dt`` is not used (``replace_t``: the column is not read and ``dt`` times the log).
     ``columns``: the file's names of the format's columns, e.g. ``{"t": "time", "gyr_x": "GyroX", ...}``
-    (:func:`check_columns`; the units are not converted: :mod:`jaxatt.units`); a column of the file that carries
-    one of the format's names but is mapped from another is not read.
+    (:func:`check_columns`); the file's own column of a name that ``columns`` maps elsewhere is not read.
+    ``gyr_unit``, ``acc_unit``, ``time_unit``: the units of the file's gyro, accelerometer and time columns
+    (:func:`jaxatt.frames.to_si`), converted to rad/s, m/s^2 and s (date-time stamps carry their own unit).
     Plain numeric files go through numpy's C reader; a file with
     empty cells (read as NaN) or anything unusual is read cell by cell, and a cell that is not a number is
     refused with its line and column."""
+    _check_units(gyr_unit, acc_unit, time_unit)
     rename = {v: k for k, v in check_columns(columns).items()}
     path = Path(path)
     src = str(path)
@@ -384,7 +400,8 @@ def load_csv(
         if not first.strip():
             raise ValueError(f"{src}: empty file (a header line is required)")
         sep = _separator(first)
-        header = [h.strip() for h in next(csv.reader([first], delimiter=sep))]
+        # skipinitialspace: a quoted name after ", " ("Time (ms)", "Gyro X") loses its quotes
+        header = [h.strip() for h in next(csv.reader([first], delimiter=sep, skipinitialspace=True))]
         if any(header) and all(_is_number(h) for h in header if h):
             named = [h.strip() for h in next(csv.reader([comment.lstrip("#")], delimiter=sep))] if comment else []
             if "gyr_x" not in named:
@@ -400,7 +417,9 @@ def load_csv(
             if absent:
                 raise ValueError(f"{src}: column {absent[0]!r} (given in columns) is not in the header: {header}")
             mapped = set(rename.values())  # the file's own column of a mapped name is not read
-            header = [rename.get(h, "" if h in mapped else h) for h in header]
+            file_header, header = header, [rename.get(h, "" if h in mapped else h) for h in header]
+        else:
+            file_header = header
         if replace_t:
             _uniform_times(0, dt, src)  # dt must be given
             header = ["" if h == "t" else h for h in header]  # not read
@@ -412,20 +431,25 @@ def load_csv(
                 if len(header) == 1:
                     hint = " (separate the columns with commas, semicolons or tabs)"
                 elif looks:
-                    hint = f"; {looks[0]!r} looks like it: name it {c!r}"
+                    hint = (
+                        f"; {looks[0]!r} looks like it: read it with columns={{{c!r}: {looks[0]!r}, ...}} / --columns"
+                    )
                     if "deg" in looks[0].lower():
-                        hint += " and convert it to rad/s (jaxatt reads gyr in rad/s)"
+                        hint += " and give its unit: gyr_unit='deg/s' / --gyr-unit deg/s"
                 elif c == "t" and header[0] == "":
                     hint = "; the first column has no name: if it holds the times, name it 't'" + _NO_TIME_HINT
                 else:
                     hint = (_NO_TIME_HINT if c == "t" else "") + _COLUMNS_READ
-                raise ValueError(f"{src}: required column {c!r} missing (header: {header}){hint}")
+                    if not rename:
+                        hint += "; a file's own names are read with columns= / --columns, e.g. t=time,gyr_x=GyroX"
+                raise ValueError(f"{src}: required column {c!r} missing (header: {file_header}){hint}")
         groups = {}
         for name, cols in CSV_COLUMNS.items():
             present = [c in idx for c in cols]
             if any(present) and not all(present):
                 missing = [c for c, p in zip(cols, present) if not p]
-                raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}")
+                more = " (add them to columns / --columns)" if rename else ""
+                raise ValueError(f"{src}: column group {name!r} is incomplete, missing {missing}{more}")
             if all(present):
                 groups[name] = cols
             elif name != "t" or (dt is not None and not replace_t):  # t's look-alike is unread when dt times it
@@ -446,18 +470,39 @@ def load_csv(
         table = _read_table_fast(f, read, len(header), sep)
         if table is None:
             f.seek(body)
-            table = _read_table_checked(f, header, read, src, sep, first_line=line + 1)
+            table, dated = _read_table_checked(f, header, read, src, sep, first_line=line + 1)
+        else:
+            dated = False
     at = {c: j for j, c in enumerate(names)}
     data = {}
     for name, cols in groups.items():
         a = table[:, [at[c] for c in cols]]
         data[name] = a[:, 0] if name == "t" else a
-    if "t" not in data:
+    timed_by_dt = "t" not in data
+    if timed_by_dt:
         data["t"] = _uniform_times(len(table), dt, src)
     samples, q = check_log(
         ImuSample(data["t"], data["gyr"], data.get("acc"), data.get("mag")), data.get("quat_true"), source=src
     )
+    samples = _in_si(samples, src, gyr_unit, acc_unit, time_unit, dated=dated, timed_by_dt=timed_by_dt)
     return (samples, q) if with_truth else samples
+
+
+def _check_units(gyr_unit: str, acc_unit: str, time_unit: str) -> None:
+    for argument, unit in (("gyr_unit", gyr_unit), ("acc_unit", acc_unit), ("time_unit", time_unit)):
+        frames.unit_factor(argument, unit)
+
+
+def _in_si(samples: ImuSample, src: str, gyr_unit, acc_unit, time_unit, *, dated: bool, timed_by_dt: bool):
+    """A checked log's gyro, accelerometer and numeric timestamps converted to rad/s, m/s^2 and s."""
+    if time_unit != "s" and (dated or timed_by_dt):
+        why = "its t column holds date-times, which carry their own unit" if dated else "it is timed by dt (s)"
+        raise ValueError(f"{src}: time_unit {time_unit!r} (--time-unit) applies to numeric timestamps, and {why}")
+    return samples._replace(
+        t=frames.to_si(samples.t, "time_unit", time_unit),
+        gyr=frames.to_si(samples.gyr, "gyr_unit", gyr_unit),
+        acc=frames.to_si(samples.acc, "acc_unit", acc_unit),
+    )
 
 
 def save_csv(path, samples: ImuSample, quat_true=None) -> None:
@@ -481,11 +526,21 @@ def save_csv(path, samples: ImuSample, quat_true=None) -> None:
 # ------------------------------------------------------------------------------------------------------------
 # NPZ
 # ------------------------------------------------------------------------------------------------------------
-def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None, replace_t: bool = False):
+def load_npz(
+    path,
+    *,
+    with_truth: bool = False,
+    dt: Optional[float] = None,
+    replace_t: bool = False,
+    gyr_unit: str = "rad/s",
+    acc_unit: str = "m/s^2",
+    time_unit: str = "s",
+):
     """Read an NPZ log (arrays t, gyr, optional acc, mag, quat_true). Returns ImuSample (or (ImuSample, q)).
 
     ``dt`` (s): the sample period of a log without a ``t`` array (t = 0, dt, 2 dt, ...); not used when it has one
-    (``replace_t``: the array is not read and ``dt`` times the log)."""
+    (``replace_t``: the array is not read and ``dt`` times the log). Units as in :func:`load_csv`."""
+    _check_units(gyr_unit, acc_unit, time_unit)
     src = str(path)
     try:
         z = np.load(path, allow_pickle=False)
@@ -504,9 +559,12 @@ def load_npz(path, *, with_truth: bool = False, dt: Optional[float] = None, repl
         _uniform_times(0, dt, src)  # dt must be given
         arrays.pop("t", None)
     get = arrays.get
-    if "t" not in arrays:
+    timed_by_dt = "t" not in arrays
+    if timed_by_dt:
         arrays["t"] = _uniform_times(len(np.atleast_1d(arrays["gyr"])), dt, src)
+    dated = np.asarray(arrays["t"]).dtype.kind in "Mm"
     samples, q = check_log(ImuSample(get("t"), get("gyr"), get("acc"), get("mag")), get("quat_true"), source=src)
+    samples = _in_si(samples, src, gyr_unit, acc_unit, time_unit, dated=dated, timed_by_dt=timed_by_dt)
     return (samples, q) if with_truth else samples
 
 
@@ -541,9 +599,12 @@ def load_log(
     dt: Optional[float] = None,
     replace_t: bool = False,
     columns: Union[Mapping[str, str], str, None] = None,
+    gyr_unit: str = "rad/s",
+    acc_unit: str = "m/s^2",
+    time_unit: str = "s",
 ):
     """Read a .csv or .npz log (see the module docstring for columns, units and frames); ``columns``: the CSV
-    file's own column names (:func:`load_csv`).
+    file's own column names; ``gyr_unit``, ``acc_unit``, ``time_unit``: the file's units (:func:`load_csv`).
 
     Returns ImuSample(t (N,), gyr (N, 3), acc (N, 3) or None, mag (N, 3) or None) of float64 numpy arrays, or
     (ImuSample, quat_true (N, 4) or None) with ``with_truth=True``. ``dt`` (s): the sample period of a log with
@@ -566,9 +627,16 @@ def load_log(
                 "PowerShell's default); save it as UTF-8 (or ASCII) CSV"
             )
     try:
-        if kind == "csv":
-            return load_csv(path, with_truth=with_truth, dt=dt, replace_t=replace_t, columns=columns)
-        return load_npz(path, with_truth=with_truth, dt=dt, replace_t=replace_t)
+        load = functools.partial(load_csv, columns=columns) if kind == "csv" else load_npz
+        return load(
+            path,
+            with_truth=with_truth,
+            dt=dt,
+            replace_t=replace_t,
+            gyr_unit=gyr_unit,
+            acc_unit=acc_unit,
+            time_unit=time_unit,
+        )
     except UnicodeDecodeError as e:
         if kind != "csv":
             raise ValueError(f"log {path}: cannot read it ({e})") from None

@@ -354,7 +354,7 @@ class Study(abc.ABC):
             runs = traces["t"].shape[0]
             plot.angle_error_plot(mc_traces=traces, ax=ax, color=f"C{i}", mc_label=f"{label}: median ({runs} runs)")
         ws = self.window_start(cfg)
-        ax.axvline(ws, color="0.4", lw=0.8, ls="--", label=f"metrics from t = {ws:g} s")
+        ax.axvline(ws, color="0.4", lw=0.8, ls="--", label=f"metrics from t = {ws:.4g} s")
         ax.legend(loc="best", fontsize=8)
         plot._tidy_log_axis(ax)
         ax.set_title(f"{payload.get('experiment', self.name)}: median, 25-75 % and 5-95 % of the runs", fontsize=10)
