@@ -1,8 +1,9 @@
 """Plain IMU logs on disk: CSV and NPZ, read into / written from :class:`jaxatt.ImuSample` of numpy arrays.
 
-Units and frames (not converted, not guessed): time ``t`` in s; ``gyr`` angular rate in rad/s; ``acc`` specific
-force in m/s^2; ``mag`` magnetic field in the user's unit (uT, nT, gauss: keep it consistent with the observer's
-parameters); all vectors in the sensor (body) frame. Optional ``quat_true``: ground-truth orientation, unit
+Units and frames (never guessed; converted when the loader is told: ``gyr_unit``, ``acc_unit``, ``time_unit``,
+:func:`jaxatt.frames.to_si`): time ``t`` in s; ``gyr`` angular rate in rad/s; ``acc`` specific force in m/s^2;
+``mag`` magnetic field in the user's unit (uT, nT, gauss: keep it consistent with the observer's parameters); all
+vectors in the sensor (body) frame. Optional ``quat_true``: ground-truth orientation, unit
 quaternion (w, x, y, z), sensor-to-reference (e.g. ENU), NaN where unknown.
 
 A missing reading is NaN (an empty CSV field, ``nan``, ``NA``, ``N/A`` or ``null`` reads as NaN); every observer
