@@ -564,6 +564,8 @@ def filter(
             as a magnetometer whose every row is NaN. A registered observer set up
             from the first sample (start and references: mekf, nlo, nlio, complementary, ...) takes a sensor's
             first present reading when row 0 lacks it.
+            Or the whole recording as one :class:`jaxatt.ImuSample` in place of ``gyr`` (what
+            :func:`jaxatt.data.logs.load_log` returns): its ``t`` times it, so acc, mag, t and dt are not given.
         dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing, or numpy
             datetime64 / timedelta64 (read in their own unit).
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
@@ -592,6 +594,14 @@ def filter(
     finite (the first row and time are named).
     """
     frame = frames.check_frame(frame)
+    if isinstance(gyr, ImuSample):  # one recording (jaxatt.data.logs.load_log)
+        given = [k for k, v in (("acc", acc), ("mag", mag), ("t", t), ("dt", dt)) if v is not None]
+        if given:
+            raise ValueError(
+                f"gyr is a whole recording (an ImuSample with its own t, acc and mag): {', '.join(given)} cannot be "
+                "given beside it"
+            )
+        gyr, acc, mag, t = gyr.gyr, gyr.acc, gyr.mag, gyr.t
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)

@@ -513,6 +513,11 @@ def test_unit_arguments_give_the_filter_of_the_same_recording_in_si_units():
             jaxatt.filter(MY_OBSERVER, gyr, acc, mag, t=t, params=MY_PARAMS._replace(kp=jnp.asarray(2.0))).quat,
             atol=1e-6,
         )  # the comparison can fail: other gains give other estimates
+    # the recording as one ImuSample (what jaxatt.data.logs.load_log returns) is the same recording
+    log = ImuSample(t * 1e3, np.rad2deg(gyr), acc / 9.80665, mag)
+    np.testing.assert_array_equal(jaxatt.filter(MY_OBSERVER, log, params=MY_PARAMS, **raw).quat, by_t.quat)
+    with pytest.raises(ValueError, match=r"gyr is a whole recording .*: mag, dt cannot be given beside it"):
+        jaxatt.filter(MY_OBSERVER, log, None, mag, dt=0.01, params=MY_PARAMS)
     f32 = [np.asarray(a, np.float32) for a in (np.rad2deg(gyr), acc / 9.80665, mag)]
     est32 = jaxatt.filter(MY_OBSERVER, *f32, dt=10.0, params=MY_PARAMS, **raw)
     assert est32.quat.dtype == np.float32
