@@ -780,11 +780,13 @@ class BroadScore(NamedTuple):
 
 
 def group_means(per_trial: Dict[str, TrialScore]) -> Dict[str, GroupScore]:
-    """Mean per-trial metrics per group ("undisturbed", "disturbed") and over all trials."""
+    """Mean per-trial metrics per group (BROAD's "undisturbed", "disturbed", then any other label of your own
+    trials, :func:`jaxatt.data.logs.load_trial`) and over all trials ("all")."""
     from .data.broad import GROUPS, METRICS
 
     out = {}
-    for g in GROUPS + ("all",):
+    own = sorted({s.group for s in per_trial.values()} - set(GROUPS) - {"all"})
+    for g in GROUPS + tuple(own) + ("all",):
         rows = [
             s for s in per_trial.values() if (g == "all" or s.group == g) and np.isfinite(s.total_rmse_deg)
         ]  # trials without ground truth (NaN) are not in the means

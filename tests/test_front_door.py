@@ -15,7 +15,7 @@ import pytest
 from broad_data import DATA, need_data
 
 import jaxatt
-from jaxatt import engine, montecarlo, so3
+from jaxatt import engine, frames, montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.types import ImuSample, Observer
 
@@ -177,6 +177,42 @@ def test_broad_score_of_your_observer_equals_the_numpy_metric(trials):
     g = score.groups["all"]
     assert g.total_rmse_deg == pytest.approx(np.mean([s.total_rmse_deg for s in score.trials.values()]))
     assert json.loads(json.dumps(score.to_dict()))["observer"] == "my_mahony"
+
+
+def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp_path):
+    """jaxatt.data.logs.load_trial: a logger's CSV (its own names, ms, deg/s, g) with its ground truth in NED
+    becomes a Trial whose truth is the simulated sensor-to-ENU attitude, and broad_score on it is the numpy BROAD
+    metric of jaxatt.filter's estimate; movement masks what is scored."""
+    from jaxatt.data import logs
+
+    samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=3.0, dt=0.01, seed=2)
+    s = ImuSample(*(np.asarray(a) for a in samples))
+    q_enu = np.asarray(so3.matrix_to_quat(truth.r))
+    raw = s._replace(t=s.t * 1e3, gyr=np.rad2deg(s.gyr), acc=s.acc / 9.80665)
+    path = tmp_path / "phone.csv"
+    logs.save_log(path, raw, frames.change_frame(q_enu, "NED", "ENU"))
+    text = path.read_text().splitlines()
+    path.write_text("\n".join([text[0].replace("gyr_", "Gyro").replace("t,", "time_ms,", 1)] + text[1:]) + "\n")
+    kw = dict(columns="t=time_ms,gyr_x=Gyrox,gyr_y=Gyroy,gyr_z=Gyroz", gyr_unit="deg/s", acc_unit="g", time_unit="ms")
+    trial = logs.load_trial(path, frame="NED", group="mine", **kw)
+    assert trial.name == "phone" and trial.group == "mine" and trial.rate_hz == pytest.approx(100.0)
+    np.testing.assert_allclose(np.abs(np.sum(trial.quat_true * q_enu, axis=-1)), 1.0, atol=1e-12)  # q or -q
+    np.testing.assert_allclose(trial.samples.gyr, s.gyr, rtol=1e-13)
+    assert trial.movement.all()
+    late = logs.load_trial(path, frame="NED", movement=np.asarray(s.t) >= 1.0, **kw)
+    score = jaxatt.broad_score("mahony", None, [trial, late._replace(name="late")])
+    est = jaxatt.filter("mahony", trial.samples)
+    for tr in (trial, late):
+        ref = broad.broad_errors(est.quat, tr.quat_true, tr.movement)
+        got = score.trials["late" if tr is late else "phone"]
+        assert got.total_rmse_deg == pytest.approx(ref["total_rmse_deg"], rel=1e-9)
+    assert score.trials["late"].total_rmse_deg != pytest.approx(score.trials["phone"].total_rmse_deg, rel=1e-3)
+    assert set(score.groups) == {"mine", "own", "all"} and score.groups["mine"].n_trials == 1
+    with pytest.raises(ValueError, match=r"no ground truth \(columns quat_w"):
+        logs.save_log(tmp_path / "no_truth.csv", s)
+        logs.load_trial(tmp_path / "no_truth.csv")
+    with pytest.raises(ValueError, match=r"movement must be a bool array of shape \(301,\)"):
+        logs.load_trial(path, movement=np.ones(5, bool), **kw)
 
 
 def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path):

@@ -47,6 +47,7 @@ __all__ = [
     "load_csv",
     "save_csv",
     "load_npz",
+    "load_trial",
     "save_npz",
     "check_log",
     "check_columns",
@@ -653,6 +654,65 @@ def load_log(
         ) from None
     except (OSError, EOFError) as e:
         raise ValueError(f"log {path}: cannot read it ({e})") from None
+
+
+def load_trial(
+    path,
+    *,
+    frame: str = "ENU",
+    group: str = "own",
+    movement=None,
+    columns: Union[Mapping[str, str], str, None] = None,
+    gyr_unit: str = "rad/s",
+    acc_unit: str = "m/s^2",
+    time_unit: str = "s",
+):
+    """A recording with ground truth (a CSV / NPZ log with ``quat_w ... quat_z`` / ``quat_true``) as a
+    :class:`jaxatt.data.broad.Trial`, to score and tune on with :func:`jaxatt.broad_score` and :func:`jaxatt.fit`
+    like a BROAD trial.
+
+    ``frame``: the navigation frame the truth maps the sensor to ("ENU", "NED", "NWU"), converted to ENU, the
+    registered observers' frame on recorded data (north: the magnetic field's horizontal direction, as BROAD's).
+    ``movement``: (N,) bool, the samples scored (default: every sample with a finite truth). ``group``: a label
+    for the per-group means (BROAD's are "undisturbed" and "disturbed"; a fit weights each group equally). The
+    name is the file's stem; ``rate_hz`` is 1 / the median step. A log without a magnetometer becomes a 6D trial
+    (mag NaN). ``columns`` and the units as in :func:`load_log`.
+    """
+    from . import broad
+
+    samples, q = load_log(
+        path, with_truth=True, columns=columns, gyr_unit=gyr_unit, acc_unit=acc_unit, time_unit=time_unit
+    )
+    if q is None:
+        raise ValueError(
+            f"log {path}: no ground truth (columns quat_w, quat_x, quat_y, quat_z / array quat_true) to score against"
+        )
+    if samples.acc is None:
+        raise ValueError(f"log {path}: no accelerometer columns (acc_x, acc_y, acc_z): a trial needs gyr and acc")
+    n = len(samples.t)
+    if n < 2:
+        raise ValueError(f"log {path}: a trial needs at least 2 samples, got {n}")
+    q = frames.change_frame(q, "ENU", frames.check_frame(frame))
+    mag = samples.mag if samples.mag is not None else np.full((n, 3), np.nan)
+    if movement is None:
+        movement = np.all(np.isfinite(q), axis=-1)
+    else:
+        movement = np.asarray(movement)
+        if movement.shape != (n,) or movement.dtype != bool:
+            raise ValueError(
+                f"movement must be a bool array of shape ({n},), got {movement.dtype}{list(movement.shape)}"
+            )
+    if not isinstance(group, str) or not group.strip() or group == "all":
+        raise ValueError(f"group must be a label (text, not 'all'), got {group!r}")
+    trial = broad.Trial(
+        Path(path).stem,
+        samples._replace(mag=mag),
+        q,
+        movement,
+        1.0 / float(np.median(np.diff(samples.t))),
+        group,
+    )
+    return broad.check_trials([trial], what=f"log {path}")[0]
 
 
 def save_log(path, samples: ImuSample, quat_true=None) -> None:
