@@ -565,7 +565,8 @@ def filter(
             from the first sample (start and references: mekf, nlo, nlio, complementary, ...) takes a sensor's
             first present reading when row 0 lacks it.
             Or the whole recording as one :class:`jaxatt.ImuSample` in place of ``gyr`` (what
-            :func:`jaxatt.data.logs.load_log` returns): its ``t`` times it, so acc, mag, t and dt are not given.
+            :func:`jaxatt.data.logs.load_log` returns): its ``t`` times it, so acc, mag, t and dt are not given
+            (the unit arguments still describe it: load_log's is in rad/s, m/s^2 and s already).
         dt: constant sample period (s), or ``t``: (T,) timestamps (s), strictly increasing, or numpy
             datetime64 / timedelta64 (read in their own unit).
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
@@ -594,7 +595,15 @@ def filter(
     finite (the first row and time are named).
     """
     frame = frames.check_frame(frame)
-    if isinstance(gyr, ImuSample):  # one recording (jaxatt.data.logs.load_log)
+    if isinstance(getattr(gyr, "samples", None), ImuSample):  # a Trial
+        raise ValueError(f"gyr is a trial ({type(gyr).__name__}): pass its recording, trial.samples")
+    if isinstance(gyr, tuple) and not isinstance(gyr, ImuSample) and any(isinstance(g, ImuSample) for g in gyr):
+        raise ValueError(
+            "gyr is a tuple holding an ImuSample (load_log(..., with_truth=True) returns (samples, truth)): pass the "
+            "samples"
+        )
+    whole = isinstance(gyr, ImuSample)
+    if whole:  # one recording (jaxatt.data.logs.load_log)
         given = [k for k, v in (("acc", acc), ("mag", mag), ("t", t), ("dt", dt)) if v is not None]
         if given:
             raise ValueError(
@@ -625,6 +634,10 @@ def filter(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     if entry is not None:
         if "acc" in entry.needs and acc_a is None:
+            if whole:
+                raise ValueError(
+                    f"observer {name!r} needs acc, and the recording has no accelerometer (its acc is None)"
+                )
             raise ValueError(f"observer {name!r} needs acc (an array of shape (T, 3), m/s^2)")
         if "mag" in entry.needs and mag_a is None:  # as a magnetometer with no reading: inclination only
             warnings.warn(
@@ -835,6 +848,15 @@ def broad_score(
             "include an arbitrary heading; compare inclination_rmse_deg",
             stacklevel=2,
         )
+    elif entry is not None:
+        six = [tr.name for tr in trials if not np.isfinite(np.asarray(tr.samples.mag)).any()]
+        if six:
+            warnings.warn(
+                f"trial{'s' if len(six) > 1 else ''} {', '.join(six)} ha{'ve' if len(six) > 1 else 's'} no "
+                f"magnetometer reading: {name} runs on {'them' if len(six) > 1 else 'it'} without one (inclination "
+                "only: the heading drifts with the gyro, and so do the total and heading errors)",
+                stacklevel=2,
+            )
     from . import smoothing
 
     spec = smoothing.resolve_offline(offline)

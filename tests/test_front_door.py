@@ -213,6 +213,26 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
         logs.load_trial(tmp_path / "no_truth.csv")
     with pytest.raises(ValueError, match=r"movement must be a bool array of shape \(301,\)"):
         logs.load_trial(path, movement=np.ones(5, bool), **kw)
+    # what a user hands over by mistake: one line each, saying what to pass
+    with pytest.raises(ValueError, match=r"gyr is a trial \(Trial\): pass its recording, trial.samples"):
+        jaxatt.filter("mahony", trial)
+    with pytest.raises(ValueError, match=r"gyr is a tuple holding an ImuSample .*: pass the samples"):
+        jaxatt.filter("mahony", logs.load_log(path, with_truth=True, **kw))
+    with pytest.raises(ValueError, match=r"data must be a list of trials, got one Trial \(phone\): pass \[trial\]"):
+        jaxatt.fit("mahony", None, trial, steps=1)
+    with pytest.raises(ValueError, match=r"phone.csv: a CSV / NPZ log, not a BROAD .hdf5 trial: .*logs.load_trial"):
+        broad.load_trial(path)
+    # a recording without a magnetometer and without timestamps: dt times it, name= names it, and a 9D filter
+    # scored on it says it runs without a magnetometer
+    six = tmp_path / "six.csv"
+    logs.save_log(six, s._replace(mag=None), q_enu)
+    text = six.read_text().splitlines()
+    six.write_text("\n".join(",".join(row.split(",")[1:]) for row in text) + "\n")  # no t column
+    six_trial = logs.load_trial(six, dt=0.01, name="six-axis")
+    assert six_trial.name == "six-axis" and np.isnan(six_trial.samples.mag).all()
+    np.testing.assert_allclose(six_trial.samples.t, s.t, atol=1e-12)
+    with pytest.warns(UserWarning, match=r"trial six-axis has no magnetometer reading: mahony runs on it without"):
+        jaxatt.broad_score("mahony", None, [six_trial])
 
 
 def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path):

@@ -138,7 +138,9 @@ def test_npz_errors(tmp_path):
     with pytest.raises(ValueError, match="quat_true"):
         logs.load_log(p, with_truth=True)
     np.savez(p, t=np.arange(3.0), gyr=np.zeros((3, 3)), quat_true=np.tile([0.0, 0.0, 0.0, 3.0], (3, 1)))
-    with pytest.raises(ValueError, match=r"quat_true row 0 has norm 3"):
+    with pytest.raises(
+        ValueError, match=r"quat_true \(CSV columns quat_w \.\.\. quat_z\) row 0 has norm 3.*: normalise each row"
+    ):
         logs.load_log(p, with_truth=True)
     # files numpy reads but that are not logs of real numbers: each error names the file
     np.savez(p, t=np.array([object()] * 3, dtype=object), gyr=np.zeros((3, 3)))

@@ -156,6 +156,10 @@ def _h5py():
 def load_trial(path) -> Trial:
     """Load one BROAD HDF5 trial file (see :class:`Trial` for units and frames)."""
     path = Path(path)
+    if path.suffix.lower() in (".csv", ".npz"):
+        raise ValueError(
+            f"{path.name}: a CSV / NPZ log, not a BROAD .hdf5 trial: read it with jaxatt.data.logs.load_trial"
+        )
     h5py = _h5py()
     if not path.is_file():
         raise FileNotFoundError(f"BROAD trial file not found: {path}")
@@ -217,7 +221,10 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
     names = [tr.name for tr in trials]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ValueError(f"{what}: trial names must be unique, {', '.join(map(repr, dup))} appears more than once")
+        raise ValueError(
+            f"{what}: trial names must be unique, {', '.join(map(repr, dup))} appears more than once (rename one: "
+            "trial._replace(name=...), or jaxatt.data.logs.load_trial(..., name=...))"
+        )
     for tr in trials:
         where = f"trial {tr.name}"
         s = tr.samples
@@ -245,7 +252,10 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
             )
         m = np.asarray(tr.movement)
         if m.shape != (n,) or m.dtype != bool:
-            raise ValueError(f"{where}: movement must be a bool array of shape ({n},), got {m.dtype}{list(m.shape)}")
+            raise ValueError(
+                f"{where}: movement must be a bool array of shape ({n},), got {m.dtype}{list(m.shape)} "
+                "(a 0 / 1 array: .astype(bool))"
+            )
         try:
             rate = float(tr.rate_hz)
         except (TypeError, ValueError):

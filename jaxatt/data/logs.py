@@ -180,8 +180,8 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
         bad = non_unit_row(q)
         if bad is not None:
             raise ValueError(
-                f"{source}: quat_true row {bad[0]} has norm {bad[1]:.6g}; the truth must be unit quaternions "
-                "(w, x, y, z)"
+                f"{source}: quat_true (CSV columns quat_w ... quat_z) row {bad[0]} has norm {bad[1]:.6g}; the truth "
+                "must be unit quaternions (w, x, y, z): normalise each row"
             )
     return ImuSample(out["t"], out["gyr"], out["acc"], out["mag"]), q
 
@@ -662,6 +662,8 @@ def load_trial(
     frame: str = "ENU",
     group: str = "own",
     movement=None,
+    name: Optional[str] = None,
+    dt: Optional[float] = None,
     columns: Union[Mapping[str, str], str, None] = None,
     gyr_unit: str = "rad/s",
     acc_unit: str = "m/s^2",
@@ -672,16 +674,22 @@ def load_trial(
     like a BROAD trial.
 
     ``frame``: the navigation frame the truth maps the sensor to ("ENU", "NED", "NWU"), converted to ENU, the
-    registered observers' frame on recorded data (north: the magnetic field's horizontal direction, as BROAD's).
+    registered observers' frame on recorded data. North there is the magnetic field's horizontal direction, as
+    in BROAD, and the metric fits no offset: truth from a motion-capture system must first be turned from the
+    system's own world frame (and the markers' body frame) to that one, or every estimate is off by the yaw
+    between them.
     ``movement``: (N,) bool, the samples scored (default: every sample with a finite truth). ``group``: a label
-    for the per-group means (BROAD's are "undisturbed" and "disturbed"; a fit weights each group equally). The
-    name is the file's stem; ``rate_hz`` is 1 / the median step. A log without a magnetometer becomes a 6D trial
-    (mag NaN). ``columns`` and the units as in :func:`load_log`.
+    for the per-group means (BROAD's are "undisturbed" and "disturbed"; a fit weights each group equally, so its
+    loss is the mean of the group means, not ``groups["all"]``). ``name``: the trial's name (default the file's
+    stem). ``rate_hz`` is 1 / the median step. A log without a magnetometer becomes a 6D trial (mag NaN).
+    ``dt`` (s), ``columns`` and the units as in :func:`load_log`.
     """
     from . import broad
 
+    if name is not None and (not isinstance(name, str) or not name.strip()):
+        raise ValueError(f"name must be a trial name (text), got {name!r}")
     samples, q = load_log(
-        path, with_truth=True, columns=columns, gyr_unit=gyr_unit, acc_unit=acc_unit, time_unit=time_unit
+        path, with_truth=True, dt=dt, columns=columns, gyr_unit=gyr_unit, acc_unit=acc_unit, time_unit=time_unit
     )
     if q is None:
         raise ValueError(
@@ -700,12 +708,13 @@ def load_trial(
         movement = np.asarray(movement)
         if movement.shape != (n,) or movement.dtype != bool:
             raise ValueError(
-                f"movement must be a bool array of shape ({n},), got {movement.dtype}{list(movement.shape)}"
+                f"movement must be a bool array of shape ({n},), got {movement.dtype}{list(movement.shape)} "
+                "(a 0 / 1 array: .astype(bool))"
             )
     if not isinstance(group, str) or not group.strip() or group == "all":
         raise ValueError(f"group must be a label (text, not 'all'), got {group!r}")
     trial = broad.Trial(
-        Path(path).stem,
+        Path(path).stem if name is None else name,
         samples._replace(mag=mag),
         q,
         movement,

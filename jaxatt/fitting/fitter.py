@@ -827,6 +827,8 @@ def _fit(
     )
     from ..data import broad as B
 
+    if isinstance(data, B.Trial):
+        raise ValueError(f"data must be a list of trials, got one Trial ({data.name}): pass [trial]")
     trials = list(data) if data is not None else []
     if not trials or not all(isinstance(t, B.Trial) for t in trials):
         raise ValueError(
