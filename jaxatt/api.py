@@ -833,6 +833,13 @@ def broad_score(
     from .data import broad as B
 
     trials = B.check_trials(trials)
+    unscored = [tr.name for tr in trials if not B.scored_samples(tr).any()]
+    if unscored:
+        warnings.warn(
+            f"no scored sample (movement and a finite quat_true) in trial{'s' if len(unscored) > 1 else ''} "
+            f"{', '.join(unscored)}: its metrics are NaN and the group means leave it out",
+            stacklevel=2,
+        )
     dt_ = compute_dtype(*trial_arrays(trials), dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)

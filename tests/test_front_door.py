@@ -233,6 +233,10 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
     np.testing.assert_allclose(six_trial.samples.t, s.t, atol=1e-12)
     with pytest.warns(UserWarning, match=r"trial six-axis has no magnetometer reading: mahony runs on it without"):
         jaxatt.broad_score("mahony", None, [six_trial])
+    unscored = trial._replace(name="none", movement=np.zeros_like(trial.movement))
+    with pytest.warns(UserWarning, match=r"no scored sample .* in trial none: its metrics are NaN and the group"):
+        score = jaxatt.broad_score("mahony", None, [unscored, trial])
+    assert np.isnan(score.trials["none"].total_rmse_deg) and score.groups["all"].n_trials == 1
 
 
 def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path):
