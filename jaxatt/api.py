@@ -834,7 +834,7 @@ def broad_score(
 
     trials = B.check_trials(trials)
     unscored = [tr.name for tr in trials if not B.scored_samples(tr).any()]
-    if unscored:
+    if 0 < len(unscored) < len(trials):  # none scored: said below
         warnings.warn(
             f"no scored sample (movement and a finite quat_true) in trial{'s' if len(unscored) > 1 else ''} "
             f"{', '.join(unscored)}: its metrics are NaN and the group means leave it out",

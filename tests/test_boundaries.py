@@ -400,7 +400,8 @@ def test_broad_trial_without_ground_truth_is_said_not_failed(files, capsys):
     assert np.isnan(d["trials"]["01_no_truth"]["total_rmse_deg"]) and d["groups"] == {}
     (files / "b.json").unlink()
     trials = jaxatt.data.broad.load(files / "trials_no_truth") + jaxatt.data.broad.load(files / "trials_ok")
-    score = jaxatt.broad_score("madgwick", None, trials)
+    with pytest.warns(UserWarning, match=r"no scored sample .* in trial 01_no_truth: its metrics are NaN"):
+        score = jaxatt.broad_score("madgwick", None, trials)
     assert np.isnan(score.trials["01_no_truth"].total_rmse_deg)
     assert np.isfinite(score.trials["01_ok"].total_rmse_deg) and score.groups["all"].n_trials == 1
 
