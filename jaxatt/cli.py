@@ -170,6 +170,57 @@ def _run_flags(p: argparse.ArgumentParser):
     _output_flags(p)
 
 
+def _trial_source_flags(p: argparse.ArgumentParser):
+    """--data-dir (BROAD) or --logs (your own recordings with ground truth) and how to read the logs."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data-dir", help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
+    src.add_argument(
+        "--logs",
+        nargs="+",
+        help="your own CSV / NPZ logs with ground truth (quat_w ... quat_z), one trial each "
+        "(jaxatt.data.logs.load_trial; group 'own')",
+    )
+    p.add_argument(
+        "--truth-frame",
+        choices=("ENU", "NED", "NWU"),
+        default=None,
+        help="--logs: the navigation frame of their ground truth (default ENU; north = magnetic north)",
+    )
+    p.add_argument("--columns", default=None, help="--logs: the CSV logs' own column names, e.g. t=time,gyr_x=GyroX")
+    p.add_argument("--gyr-unit", choices=GYR_UNITS, default=None, help="--logs: unit of the gyro columns (rad/s)")
+    p.add_argument("--acc-unit", choices=ACC_UNITS, default=None, help="--logs: unit of the accelerometer (m/s^2)")
+    p.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="--logs: unit of the t column (s)")
+
+
+#: the flags of :func:`_trial_source_flags` that only --logs takes
+_LOG_READING_FLAGS = ("--truth-frame", "--columns", "--gyr-unit", "--acc-unit", "--time-unit")
+
+
+def _trials_of(args):
+    """The trials of ``--data-dir`` (with ``--trials``) or of ``--logs``."""
+    given = [f for f in _LOG_READING_FLAGS if getattr(args, f[2:].replace("-", "_")) is not None]
+    if args.data_dir is not None:
+        if given:
+            raise UserError(f"{', '.join(given)}: for --logs (BROAD trials of --data-dir are read as they are)")
+        from .data import broad
+
+        return broad.load(args.data_dir, args.trials)
+    if args.trials is not None:
+        raise UserError("--trials picks trials of --data-dir; with --logs, list the logs to use")
+    from .data import logs
+
+    units = {k: getattr(args, k) or v for k, v in _SI_UNITS.items()}
+    frame = args.truth_frame or "ENU"
+    return [logs.load_trial(p, frame=frame, columns=args.columns, **units) for p in args.logs]
+
+
+def _trial_inputs(args) -> dict:
+    """{flag: path} of what ``--data-dir`` / ``--logs`` read (for the output-path checks)."""
+    if args.data_dir is not None:
+        return {"--data-dir": args.data_dir}
+    return {f"--logs ({p})": p for p in args.logs}
+
+
 def _output_flags(p: argparse.ArgumentParser):
     """--quiet / --progress: progress lines on stderr (default: only when stderr is a terminal)."""
     out = p.add_mutually_exclusive_group()
@@ -379,8 +430,8 @@ def _parser() -> argparse.ArgumentParser:
     vp.add_argument("--json", default=None)
     _run_flags(vp)
 
-    bp = sub.add_parser("broad", help="run an observer on BROAD trials and print the BROAD metric")
-    bp.add_argument("--data-dir", required=True, help="folder of BROAD .hdf5 trials (needs jaxatt[data])")
+    bp = sub.add_parser("broad", help="run an observer on BROAD trials (or your own logs) and print the BROAD metric")
+    _trial_source_flags(bp)
     bp.add_argument(
         "--observer",
         default="robust",
@@ -394,8 +445,8 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("--offline", action="store_true", help="score the forward-backward smoothed estimate")
     _output_flags(bp)
 
-    bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials")
-    bt.add_argument("--data-dir", required=True)
+    bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials (or your own logs)")
+    _trial_source_flags(bt)
     bt.add_argument("--observer", default="robust")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
     bt.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=150)
@@ -841,7 +892,7 @@ def _evaluate(args) -> int:
 # ------------------------------------------------------------------------------------------------------------
 # BROAD
 # ------------------------------------------------------------------------------------------------------------
-def _broad_table(title: str, score) -> None:
+def _broad_table(title: str, score, anchors: bool = True) -> None:
     from .data.broad import ANCHORS
 
     print(f"\n{title}")
@@ -859,11 +910,12 @@ def _broad_table(title: str, score) -> None:
             f"{'mean ' + g + ' (' + str(v.n_trials) + ' trials)':60s} {v.total_rmse_deg:7.2f} "
             f"{v.heading_rmse_deg:8.2f} {v.inclination_rmse_deg:7.2f}"
         )
-    print(
-        "anchors (mean total RMSE, deg): "
-        + "; ".join(f"{k}: {v['undisturbed']:.2f} / {v['disturbed']:.2f}" for k, v in ANCHORS.items())
-        + "  (undisturbed / disturbed)"
-    )
+    if anchors:  # the published numbers on BROAD (not for your own logs)
+        print(
+            "anchors (mean total RMSE, deg): "
+            + "; ".join(f"{k}: {v['undisturbed']:.2f} / {v['disturbed']:.2f}" for k, v in ANCHORS.items())
+            + "  (undisturbed / disturbed)"
+        )
 
 
 def _gains_json(params) -> dict:
@@ -884,19 +936,20 @@ def _broad(args) -> int:
     from .data import broad
 
     io.check_output_path(
-        args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains, "--data-dir": args.data_dir}
+        args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains, **_trial_inputs(args)}
     )
     from .progress import Heartbeat
 
     observer, params = _observer_and_params(args)
-    trials = broad.load(args.data_dir, args.trials)
+    trials = _trials_of(args)
     dtype = "float32" if args.float32 else "float64"
     with Heartbeat(f"running {args.observer} on {len(trials)} trials", bool(_progress(args))):
         score = api.broad_score(observer, params, trials, dtype=dtype, offline=args.offline)
     shipped = getattr(api.registry.get(args.observer), "shipped", None) if args.observer in api.registry.INDEX else None
     source = args.gains or (f"--params {args.params}" if args.params else None)
     source = source or (f"shipped gains {shipped}" if shipped else "default gains")
-    _broad_table(f"BROAD, observer {score.observer} ({source}), {dtype}", score)
+    what = "BROAD" if args.data_dir is not None else f"BROAD metric on {len(trials)} logs"
+    _broad_table(f"{what}, observer {score.observer} ({source}), {dtype}", score, anchors=args.data_dir is not None)
     params = api.resolve_observer(observer, params)[1]
     io.write_json(
         args.json,
@@ -907,8 +960,8 @@ def _broad(args) -> int:
             "dtype": dtype,
             "offline": bool(args.offline),
             "wall_s": score.wall_s,
-            "anchors": broad.ANCHORS,
-            "data": broad.ATTRIBUTION,
+            "anchors": broad.ANCHORS if args.data_dir is not None else None,
+            "data": broad.ATTRIBUTION if args.data_dir is not None else {"logs": list(args.logs)},
             "environment": io.environment(),
             "trials": {
                 n: {"group": s.group, **{m: getattr(s, m) for m in broad.METRICS}} for n, s in score.trials.items()
@@ -924,16 +977,15 @@ def _broad(args) -> int:
 
 def _broad_tune(args) -> int:
     from . import io
-    from .data import broad
     from .fitting import fitter
 
     io.check_output_path(
         args.out,
         "--out",
         suffixes=io.JSON_SUFFIXES,
-        inputs={"--init-gains": args.init_gains, "--data-dir": args.data_dir},
+        inputs={"--init-gains": args.init_gains, **_trial_inputs(args)},
     )
-    trials = broad.load(args.data_dir, args.trials)
+    trials = _trials_of(args)
     from .progress import Heartbeat
 
     with Heartbeat(f"jaxatt broad-tune {args.observer}", bool(_progress(args))):

@@ -541,6 +541,30 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys, monkeypatch):
         == 2
     )
     assert "'steps' differs" in capsys.readouterr().err
+    # the same two recordings as your own CSV logs, their truth in NED (NaN outside the scored movement): --logs
+    # scores them as the BROAD files (one group of your own, no BROAD anchors) and broad-tune learns the same gains
+    # (two trials weighted equally)
+    from jaxatt import frames
+    from jaxatt.data import logs
+
+    paths = []
+    for tr in trials:
+        paths.append(str(tmp_path / f"{tr.name}.csv"))
+        truth = np.where(tr.movement[:, None], frames.change_frame(tr.quat_true, "NED", "ENU"), np.nan)
+        logs.save_log(paths[-1], tr.samples, truth)
+    mine = tmp_path / "logs.json"
+    argv = ["--logs", *paths, "--truth-frame", "NED", "--observer", "madgwick"]
+    assert cli.main(["broad", *argv, "--json", str(mine)]) == 0
+    m = json.loads(mine.read_text())
+    assert set(m["groups"]) == {"own", "all"} and m["anchors"] is None and m["data"] == {"logs": paths}
+    for name, t in b["trials"].items():
+        assert m["trials"][name]["total_rmse_deg"] == pytest.approx(t["total_rmse_deg"], rel=1e-9)
+    g2 = tmp_path / "g2.json"
+    assert cli.main(["broad-tune", *argv, "--steps", "2", "--out", str(g2), "--quiet"]) == 0
+    got, want = json.loads(g2.read_text())["gains"], saved["gains"]
+    assert got.keys() == want.keys()
+    for k in want:
+        np.testing.assert_allclose(got[k]["value"], want[k]["value"], rtol=1e-5, err_msg=k)
 
 
 def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):
