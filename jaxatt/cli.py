@@ -184,7 +184,7 @@ def _trial_source_flags(p: argparse.ArgumentParser):
         "--truth-frame",
         choices=("ENU", "NED", "NWU"),
         default=None,
-        help="--logs: the navigation frame of their ground truth (default ENU; north = magnetic north)",
+        help="--logs: the navigation frame of every log's ground truth (default ENU; north = magnetic north)",
     )
     p.add_argument("--columns", default=None, help="--logs: the CSV logs' own column names, e.g. t=time,gyr_x=GyroX")
     p.add_argument("--gyr-unit", choices=GYR_UNITS, default=None, help="--logs: unit of the gyro columns (rad/s)")
@@ -211,7 +211,9 @@ def _trials_of(args):
 
     units = {k: getattr(args, k) or v for k, v in _SI_UNITS.items()}
     frame = args.truth_frame or "ENU"
-    return [logs.load_trial(p, frame=frame, columns=args.columns, **units) for p in args.logs]
+    stems = [Path(p).stem for p in args.logs]
+    names = [str(Path(p).with_suffix("")) if stems.count(st) > 1 else st for p, st in zip(args.logs, stems)]
+    return [logs.load_trial(p, frame=frame, name=n, columns=args.columns, **units) for p, n in zip(args.logs, names)]
 
 
 def _trial_inputs(args) -> dict:
@@ -440,20 +442,24 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("--gains", default=None, help="gains file (default: the observer's shipped or default gains)")
     bp.add_argument("--params", default=None, help="module:attr of the params of your own observer")
     bp.add_argument("--trials", nargs="*", default=None, help="trial names, numbers, groups or fold1/fold2")
-    bp.add_argument("--json", default=None)
-    bp.add_argument("--float32", action="store_true")
+    bp.add_argument("--json", default=None, help="write the metric per trial and group here (deg)")
+    bp.add_argument("--float32", action="store_true", help="run the filter in float32 (default float64)")
     bp.add_argument("--offline", action="store_true", help="score the forward-backward smoothed estimate")
     _output_flags(bp)
 
     bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials (or your own logs)")
     _trial_source_flags(bt)
-    bt.add_argument("--observer", default="robust")
+    bt.add_argument("--observer", default="robust", help="a registered observer to tune (default robust)")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
-    bt.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=150)
+    bt.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=150, help="Adam steps (default 150)")
     bt.add_argument("--lr", type=_positive, default=0.05, help="Adam learning rate on log-gains")
-    bt.add_argument("--init-gains", default=None, help="start from this gains file (default: untuned defaults)")
+    bt.add_argument(
+        "--init-gains",
+        default=None,
+        help="start from this gains file (default: the observer's shipped gains, or its defaults if none are shipped)",
+    )
     bt.add_argument("--float64", action="store_true", help="tune in float64 (default float32: faster)")
-    bt.add_argument("--out", default="gains.json")
+    bt.add_argument("--out", default="gains.json", help="the gains file, rewritten after every step (gains.json)")
     bt.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     _output_flags(bt)
@@ -936,7 +942,11 @@ def _broad(args) -> int:
     from .data import broad
 
     io.check_output_path(
-        args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains, **_trial_inputs(args)}
+        args.json,
+        "--json",
+        suffixes=io.JSON_SUFFIXES,
+        inputs={"--gains": args.gains, **_trial_inputs(args)},
+        keep_gains=True,
     )
     from .progress import Heartbeat
 

@@ -55,19 +55,34 @@ JSON_SUFFIXES = (".json", "")
 
 
 def check_output_path(
-    path, flag: str = "output", suffixes: Optional[Sequence[str]] = None, inputs: Optional[Mapping[str, Any]] = None
+    path,
+    flag: str = "output",
+    suffixes: Optional[Sequence[str]] = None,
+    inputs: Optional[Mapping[str, Any]] = None,
+    keep_gains: bool = False,
 ) -> Optional[Path]:
     """Check, before computing, that ``path`` can be written: its folder exists or can be created (the check
     creates it, probes it and removes what it created) and is writable, and ``path`` is not a folder; with
     ``suffixes`` (such as (".csv", ".npz"), "" for none), that its extension is one of them (a device or FIFO is
     exempt); with ``inputs`` ({flag: path} of the files or folders the command reads), that it is none of those
-    files nor an existing file in those folders (writing would destroy an input). Returns the Path (None for None).
-    ValueError naming ``flag``."""
+    files nor an existing file in those folders (writing would destroy an input); with ``keep_gains``, that it is
+    not an existing gains file (a fit's result, which a score or result file would replace). Returns the Path
+    (None for None). ValueError naming ``flag``."""
     if path is None:
         return None
     if not str(path).strip():
         raise ValueError(f"{flag}: empty path")
     p = Path(path)
+    if keep_gains and p.is_file():
+        try:
+            with open(p, "rb") as f:
+                head = f.read(256)
+        except OSError:
+            head = b""
+        if b'"jaxatt-gains/' in head:
+            raise ValueError(
+                f"{flag} {path}: is a gains file (a fit's result), which this would replace: choose another name"
+            )
     for other_flag, other in (inputs or {}).items():
         if other is None or not str(other).strip():
             continue

@@ -233,6 +233,7 @@ BAD_INPUT = [
     (["broad", "--data-dir", "{d}/trials_ok", "--gains", "{d}/missing.json"], r"missing\.json"),
     (["broad", "--data-dir", "{d}/trials_ok", "--json", "/proc/b.json"], r"--json /proc/b\.json"),
     (["broad", "--data-dir", "{d}/trials_ok", "--truth-frame", "NED"], r"--truth-frame: for --logs \(BROAD trials"),
+    (["reproduce", "batista-ges", *MC, "--json", "{d}/robust_ok.json"], r"robust_ok\.json: is a gains file \(a fit"),
     (["broad", "--logs", "{d}/log.csv", "--trials", "01"], r"--trials picks trials of --data-dir; with --logs, list"),
     (["broad", "--logs", "{d}/log.csv"], r"log\.csv: no ground truth \(columns quat_w"),
     (["broad", "--logs", "{d}/missing.csv"], r"log .*missing\.csv: not found"),

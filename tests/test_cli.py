@@ -3,8 +3,10 @@
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -565,6 +567,22 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys, monkeypatch):
     assert got.keys() == want.keys()
     for k in want:
         np.testing.assert_allclose(got[k]["value"], want[k]["value"], rtol=1e-5, err_msg=k)
+    # resuming it: the same logs read in another frame are other data under the same names; a finished cosine fit
+    # cannot be extended; a score written over the gains file is refused; two logs of one name are told apart
+    capsys.readouterr()
+    tune = ["broad-tune", "--logs", *paths, "--observer", "madgwick", "--steps", "2", "--out", str(g2), "--quiet"]
+    assert cli.main([*tune, "--resume"]) == 2  # ENU: the NED truth read as ENU
+    assert "the training trials hold other numbers than the saved fit's" in capsys.readouterr().err
+    assert cli.main([*tune, "--truth-frame", "NED", "--resume"]) == 2
+    assert "already ran 2 steps (its cosine schedule ends there" in capsys.readouterr().err
+    assert cli.main(["broad", *argv, "--json", str(g2)]) == 2
+    assert "is a gains file (a fit's result), which this would replace" in capsys.readouterr().err
+    other = tmp_path / "other"
+    other.mkdir()
+    twin = str(other / Path(paths[0]).name)
+    shutil.copy(paths[0], twin)
+    assert cli.main(["broad", "--logs", paths[0], twin, "--truth-frame", "NED", "--json", str(mine)]) == 0
+    assert set(json.loads(mine.read_text())["trials"]) == {str(Path(p).with_suffix("")) for p in (paths[0], twin)}
 
 
 def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):

@@ -194,7 +194,11 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
     text = path.read_text().splitlines()
     path.write_text("\n".join([text[0].replace("gyr_", "Gyro").replace("t,", "time_ms,", 1)] + text[1:]) + "\n")
     kw = dict(columns="t=time_ms,gyr_x=Gyrox,gyr_y=Gyroy,gyr_z=Gyroz", gyr_unit="deg/s", acc_unit="g", time_unit="ms")
-    trial = logs.load_trial(path, frame="NED", group="mine", **kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the right frame: the truth's vertical is the accelerometer's
+        trial = logs.load_trial(path, frame="NED", group="mine", **kw)
+    with pytest.warns(UserWarning, match=r"the ground truth's vertical is 1[78]\d deg from the accelerometer's"):
+        logs.load_trial(path, **kw)  # the NED truth read as ENU
     assert trial.name == "phone" and trial.group == "mine" and trial.rate_hz == pytest.approx(100.0)
     np.testing.assert_allclose(np.abs(np.sum(trial.quat_true * q_enu, axis=-1)), 1.0, atol=1e-12)  # q or -q
     np.testing.assert_allclose(trial.samples.gyr, s.gyr, rtol=1e-13)

@@ -713,6 +713,7 @@ def load_trial(
             )
     if not isinstance(group, str) or not group.strip() or group == "all":
         raise ValueError(f"group must be a label (text, not 'all'), got {group!r}")
+    _warn_truth_frame(q, samples.acc, f"log {path}")
     trial = broad.Trial(
         Path(path).stem if name is None else name,
         samples._replace(mag=mag),
@@ -722,6 +723,26 @@ def load_trial(
         group,
     )
     return broad.check_trials([trial], what=f"log {path}")[0]
+
+
+def _warn_truth_frame(q_enu: np.ndarray, acc: np.ndarray, where: str, most_deg: float = 45.0) -> None:
+    """Warn when the truth's vertical (sensor-to-ENU ``q_enu``'s up, in the sensor frame) is, in the median, more
+    than ``most_deg`` from the accelerometer's specific force (which points up at rest): a truth in another frame
+    (NED read as ENU is 180 deg off) or a sensor-to-world truth given as world-to-sensor."""
+    w, x, y, z = (q_enu[:, i] for i in range(4))
+    up = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1)  # R^T e_z
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+        cos = np.sum(a * up, axis=-1)
+    cos = cos[np.isfinite(cos)]
+    if cos.size:
+        angle = float(np.degrees(np.arccos(np.clip(np.median(cos), -1.0, 1.0))))
+        if angle > most_deg:
+            warnings.warn(
+                f"{where}: the ground truth's vertical is {angle:.0f} deg from the accelerometer's (median): is the "
+                "truth's frame right (frame= / --truth-frame ENU, NED or NWU; the truth maps the sensor to it)?",
+                stacklevel=3,
+            )
 
 
 def save_log(path, samples: ImuSample, quat_true=None) -> None:

@@ -25,6 +25,7 @@ gains file. Resuming then needs ``out`` where every process can read it (a share
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import sys
@@ -394,6 +395,18 @@ def optimize(
 # ------------------------------------------------------------------------------------------------------------
 # Objectives
 # ------------------------------------------------------------------------------------------------------------
+def trials_fingerprint(trials) -> str:
+    """A short hash of every number of ``trials`` (times, sensors, truth, movement; in float64), so that a resumed
+    fit can tell trials of the same names but other data (another file, frame, columns or units) from its own."""
+    h = hashlib.sha256()
+    for t in trials:
+        s = t.samples
+        for a in (s.t, s.gyr, s.acc, s.mag, t.quat_true, t.movement):
+            a = np.asarray(a)
+            h.update(np.ascontiguousarray(a if a.dtype == bool else a.astype(np.float64)).tobytes())
+    return h.hexdigest()[:16]
+
+
 def _broad_weights(groups: Sequence[str]) -> np.ndarray:
     """Per-trial weights: each group present weighted equally, the trials of a group equally (sum 1)."""
     present = sorted(set(groups))
@@ -863,6 +876,8 @@ def _fit(
         "data": "trials",
         "train_trials": [t.name for t in trials],
         "val_trials": [t.name for t in val_trials],
+        "train_data": trials_fingerprint(trials),
+        "val_data": trials_fingerprint(val_trials) if val_trials else None,
         "steps": int(steps),
         "lr": lr,
         "clip": clip,
@@ -1215,11 +1230,23 @@ def _run(
                 raise ValueError(
                     f"resume: setting {k!r} differs from the saved fit ({old.get(k)!r} vs {settings.get(k)!r})"
                 )
+        for k in ("train_data", "val_data"):  # files written before the fingerprint have none
+            if k in old and old[k] != settings.get(k):
+                which = "training" if k == "train_data" else "validation"
+                raise ValueError(
+                    f"resume: the {which} trials hold other numbers than the saved fit's (same names: another file, "
+                    "truth frame, columns or units?)"
+                )
         resume_state = previous.get("resume")
         if not resume_state:
             raise ValueError(f"resume: {out_path} holds no resume state")
         if int(resume_state["step"]) >= steps:
-            raise ValueError(f"resume: the saved fit already ran {resume_state['step']} steps; ask for more steps")
+            more = (
+                " (its cosine schedule ends there: start a new fit from its gains instead: start= / --init-gains)"
+                if settings.get("schedule") == "cosine"
+                else "; ask for more steps"
+            )
+            raise ValueError(f"resume: the saved fit already ran {resume_state['step']} steps{more}")
 
     def on_save(res: OptimizeResult):
         if out_path is None:

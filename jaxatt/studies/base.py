@@ -461,7 +461,7 @@ def reproduce(
         raise ValueError(f"runs must be >= 1, got {runs}")
     if resume and not runs_file(json_path):
         raise ValueError("--resume needs --json of a file (the finished runs are saved beside it)")
-    io.check_output_path(json_path, "--json", suffixes=io.JSON_SUFFIXES)
+    io.check_output_path(json_path, "--json", suffixes=io.JSON_SUFFIXES, keep_gains=True)
     io.check_output_path(runs_file(json_path), "--json (the runs file saved beside it)")
     io.check_figure_path(plot_path, "--plot")
     if plot_path and type(study).plot is Study.plot:
