@@ -26,7 +26,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from .frames import ACC_UNITS, GYR_UNITS, TIME_UNITS
+from .frames import ACC_UNITS, FRAMES, GYR_UNITS, TIME_UNITS
 from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
@@ -182,7 +182,7 @@ def _trial_source_flags(p: argparse.ArgumentParser):
     )
     p.add_argument(
         "--truth-frame",
-        choices=("ENU", "NED", "NWU"),
+        choices=FRAMES,
         default=None,
         help="--logs: the navigation frame of every log's ground truth (default ENU; north = magnetic north)",
     )
@@ -264,7 +264,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     fp.add_argument(
         "--frame",
-        choices=["ENU", "NED", "NWU"],
+        choices=FRAMES,
         default="ENU",
         help="navigation frame of the written quaternions (default ENU): a registered observer's estimate is "
         "converted to it; your own observer's (module:attr) is written as it is and only labelled with it",
