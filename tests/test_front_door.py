@@ -243,13 +243,20 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
     assert np.isnan(score.trials["none"].total_rmse_deg) and score.groups["all"].n_trials == 1
 
 
-def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path):
+def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, tmp_path, capsys):
     out = tmp_path / "my.json"
-    res = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, lr=0.2, out=str(out))
+    res = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, lr=0.2, out=str(out), quiet=False)
     assert isinstance(res.params, MyParams) and res.status == "done"
     assert float(res.params.kp) > 0 and float(res.params.ki) > 0
     losses = [h["train_loss"] for h in res.history]
     assert res.best_loss < losses[0]
+    # best_step counts updates; each history line's loss is of the gains going into that step, and the summary
+    # says which gains it means
+    assert 1 <= res.best_step <= 4
+    if res.best_step < 4:
+        assert losses[res.best_step] == res.best_loss
+    summary = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"best loss {res.best_loss:.5g} (the gains after step {res.best_step})" in summary, summary
     # the best loss is the score of the returned params (group-weighted mean total RMSE)
     score = jaxatt.broad_score(MY_OBSERVER, res.params, trials)
     want = 0.5 * (score.groups["undisturbed"].total_rmse_deg + score.groups["disturbed"].total_rmse_deg)

@@ -108,7 +108,8 @@ class OptimizeResult(NamedTuple):
 
 
 def print_progress(info: dict, file=None) -> None:
-    """Default progress display: one line per step (training loss, validation when computed, gradient norm)."""
+    """Default progress display: one line per step: the training loss of the gains going into the step (before its
+    update), the validation loss of the gains after it when computed, and the gradient norm."""
     from ..progress import report_line
 
     val = (
@@ -1301,7 +1302,10 @@ def _run(
         n_done = len([h for h in res.history if "train_loss" in h])
         msg = f"fit {name}: {res.status} after {n_done} steps"
         if best_loss is not None:
-            msg += f"; best loss {best_loss:.5g} (step {res.best_step})"
+            # best_step counts updates: without validation the training loss of the gains after step j is the
+            # one printed on progress line j + 1 (each line's loss is of the gains going into that step)
+            which = "the starting gains" if res.best_step == 0 else f"the gains after step {res.best_step}"
+            msg += f"; best loss {best_loss:.5g} ({which})"
         print(msg + (f"; gains written to {out_path}" if out_path else ""), file=sys.stderr, flush=True)
     return FitResult(
         best, p0, res.history, res.status, res.best_step, best_loss, res.start_val, str(out_path) if out_path else None
