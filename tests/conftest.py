@@ -27,7 +27,7 @@ def pytest_xdist_auto_num_workers(config):
 
     The suite is bound by XLA compiles and Python tracing, and with one worker per CPU both cores stay ~99 % busy
     (vmstat), yet a third worker on the 2-core VM finishes sooner: cold cache, interleaved full runs, 2 workers
-    1172 s and 1159 s against 3 workers 1073 s, every test passing (research/README.md, "Test workers").
+    1172 s and 1159 s against 3 workers 1073 s and 1095 s (4 workers: 1156 s; research/README.md, "Test workers").
     """
     try:
         cpus = len(os.sched_getaffinity(0))
