@@ -18,21 +18,5 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).resolve().
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import jax
-import pytest
 
 jax.config.update("jax_enable_x64", True)
-
-
-@pytest.hookimpl(optionalhook=True)  # an xdist hook: pytest without xdist does not know it
-def pytest_xdist_auto_num_workers(config):
-    """``-n auto`` (the README's test command): one xdist worker more than the CPUs this process may use.
-
-    The suite is bound by XLA compiles and Python tracing, and with one worker per CPU both cores stay ~99 % busy
-    (vmstat), yet a third worker on the 2-core VM finishes sooner: cold cache, interleaved full runs, 2 workers
-    1172 s and 1159 s against 3 workers 1073 s and 1095 s (4 workers: 1156 s; research/README.md, "Test workers").
-    """
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return cpus + 1
