@@ -388,6 +388,14 @@ def initial_output(observer: Observer, params, state, sample0, dt):
 # ------------------------------------------------------------------------------------------------------------
 # Segments
 # ------------------------------------------------------------------------------------------------------------
+def whole_blocks(n_steps: int) -> int:
+    """``n_steps`` rounded up to a whole number of :data:`BLOCK` steps when it is longer than one block, else
+    ``n_steps``: the scan of a recorded log then holds one copy of the observer's step (a partial last block after
+    full ones is a second scan, with a second copy of the step, in the compiled program)."""
+    n_steps = int(n_steps)
+    return n_steps if n_steps <= BLOCK else BLOCK * -(-n_steps // BLOCK)
+
+
 def segment_length(n_steps: int, checkpoint: Union[str, int, bool, None] = "auto") -> int:
     """Steps per checkpointed segment (0 = no checkpointing).
 

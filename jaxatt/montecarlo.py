@@ -132,11 +132,17 @@ def _pick_out(t, truth, out):
 
 @functools.lru_cache(maxsize=32)
 def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
-    """Pure, jitted ``fn(params, samples, dt) -> Out (T, ...)``: ``observer`` over one log of T samples (any sample
+    """Pure ``fn(params, samples, dt) -> Out (T, ...)``: ``observer`` over one log of T samples (any sample
     pytree, time-major), T estimates (row 0 ``init``'s). ``dt``: a scalar step (s) or the T - 1 steps
     t_{k+1} - t_k. ``dtype``: the observer's arithmetic (default: the samples' float type); ``init`` sees the first
     sample in the samples' own precision (:mod:`jaxatt.engine`). No checks (see :func:`run`); vmap it over params
-    for a batch of gains or initial estimates."""
+    for a batch of gains or initial estimates, or jit it.
+
+    A log of more than one block of :data:`jaxatt.engine.BLOCK` steps is scanned to the end of its last block
+    (:func:`jaxatt.engine.whole_blocks`; the last sample and step repeated, the extra estimates dropped): the
+    compiled scan then holds one copy of the step instead of two (full blocks and a partial last one), which
+    roughly halves its compile time, and logs of nearby lengths share it. Estimate k depends on samples 0..k only,
+    so the T estimates are those of the unpadded scan."""
     engine.check_hold(hold)
     obs_dtype = None if dtype is None else jnp.dtype(dtype)
 
@@ -157,7 +163,27 @@ def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
         }
         return jax.tree_util.tree_map(lambda a: a[0], fn(None, params, item).records)
 
-    return go
+    def run_log(params, samples, dt):
+        n = jnp.shape(samples.gyr)[0]
+        extra = engine.whole_blocks(n - 1) - (n - 1)
+        if not extra:
+            return go(params, samples, dt)
+
+        def repeat_last(a):
+            return jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)], axis=0)
+
+        padded = jax.tree_util.tree_map(repeat_last, samples)
+        t = getattr(samples, "t", None)
+        if t is not None and jnp.ndim(t) == 1:  # timestamps go on at the last step (an observer may read t)
+            t = jnp.asarray(t)
+            padded = padded._replace(
+                t=jnp.concatenate([t, t[-1] + (t[-1] - t[-2]) * jnp.arange(1, extra + 1, dtype=t.dtype)])
+            )
+        dt = jnp.asarray(dt)
+        out = go(params, padded, repeat_last(dt) if dt.ndim == 1 else dt)
+        return jax.tree_util.tree_map(lambda a: a[:n], out)
+
+    return run_log
 
 
 def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", validate: Optional[Callable] = None):

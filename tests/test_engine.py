@@ -79,6 +79,27 @@ def test_t_estimates_for_t_samples_with_each_hold(hold, irregular):
     np.testing.assert_allclose(seen, want, atol=1e-12)
 
 
+@pytest.mark.parametrize("hold", ["zoh", "next", "linear"])
+def test_a_log_longer_than_a_block_is_scanned_in_whole_blocks(hold):
+    """montecarlo.run / log_runner scan a log of more than one block to the end of its last block
+    (engine.whole_blocks: the compiled scan then holds one copy of the step) and return the log's own T estimates:
+    those of the written-out loop, with irregular steps; the gradient in the gain equals central differences of
+    the loop (the dropped estimates contribute nothing)."""
+    b = engine.BLOCK
+    assert [engine.whole_blocks(m) for m in (10, b, b + 1, 3 * b)] == [10, b, 2 * b, 3 * b]
+    n = engine.BLOCK + 501
+    s = log(n, irregular=True)
+    out = montecarlo.run(TOY, P(jnp.asarray(0.7)), s, hold=hold)
+    assert out.x.shape == (n,) and out.t.shape == (n,)
+    np.testing.assert_allclose(np.asarray(out.x), reference(s, 0.7, hold), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.t), np.asarray(s.t), rtol=1e-12)
+    run = montecarlo.log_runner(TOY, hold)
+    g = jax.grad(lambda k: jnp.sum(run(P(k), s, jnp.diff(s.t)).x))(jnp.asarray(0.7))
+    h = 1e-6
+    fd = (reference(s, 0.7 + h, hold).sum() - reference(s, 0.7 - h, hold).sum()) / (2 * h)
+    assert abs(float(g) - fd) <= 1e-6 * abs(fd), (float(g), fd)
+
+
 def test_estimate_0_without_output_comes_from_the_state():
     """No ``output``: fields of the step's output that the state holds (t, x) are taken from it, the others are
     NaN until estimate 1."""
