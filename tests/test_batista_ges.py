@@ -215,7 +215,7 @@ def test_fused_simulation_equals_running_the_simulated_log():
 
 def test_seed_alone_equals_seed_in_batch():
     cfg = E.Config()
-    kw = dict(duration=15.0, dt=0.01, seed=11, errors_fn=E.errors, window_start=5.0)
+    kw = dict(duration=10.0, dt=0.01, seed=11, errors_fn=E.errors, window_start=5.0)  # one block: one step copy
     mc = montecarlo.monte_carlo(E.scenario(cfg), E.observer(cfg), E.params(cfg), runs=7, chunk=4, **kw)
     for k in (0, 5):
         alone, _, _ = montecarlo.simulate(E.scenario(cfg), E.observer(cfg), E.params(cfg), run_index=k, **kw)

@@ -5,7 +5,7 @@ process on one device; only process 0 writes files.
 Tolerance: float64 and the same per-run arithmetic on both sides; what differs is the order of the sums over
 runs (the loss is the pmean of two per-device means instead of one mean over 4 runs) and XLA's vectorisation of a
 batch of 2 runs per device instead of 4 or 5 (different rounding of the same operations), ~1e-16 relative per
-operation. Over 1200 steps of a stable observer (the complementary observer with noise and its gyro-bias
+operation. Over 1000 steps of a stable observer (the complementary observer with noise and its gyro-bias
 integrator, in the Monte Carlo and in the fit) and 2 Adam steps that stays far below 1e-9 (relative), while a real
 fault (a run computed twice or dropped, padding kept, a loss summed instead of averaged, process 1's gradient
 ignored) changes the numbers by 1e-3 or more.
@@ -56,12 +56,13 @@ WORKER = textwrap.dedent(
            "devices": n_dev, "local_devices": len(jax.local_devices()), "init_s": time.perf_counter() - t0}
     # the complementary observer with noisy gyro and vectors and the gyro-bias integrator: the machinery under test
     # (runs split over processes, padding, gathering, the fitter's broadcast) does not depend on the observer, and
-    # this one compiles in a fraction of batista-ges's time
-    cfg = {"duration": 12.0, "gyro_noise_std": 0.01, "meas_noise_std": 0.05, "k_i": 0.1, "scenario": "two_constant"}
+    # this one compiles in a fraction of batista-ges's time; 10 s is one noise block of 1000 steps (a partial
+    # last block would put a second copy of the step in each compiled scan)
+    cfg = {"duration": 10.0, "gyro_noise_std": 0.01, "meas_noise_std": 0.05, "k_i": 0.1, "scenario": "two_constant"}
     s = studies.get("complementary").setup(**cfg)
     t1 = time.perf_counter()
     # 5 runs in chunks of 4: two chunks, the second padded (padding dropped); traces gathered too
-    res = montecarlo.monte_carlo(s.scenario, s.observer, s.params, runs=5, chunk=4, duration=12.0,
+    res = montecarlo.monte_carlo(s.scenario, s.observer, s.params, runs=5, chunk=4, duration=10.0,
                                  dt=s.dt, seed=3, errors_fn=s.errors_fn, window_start=4.0, trace_every=250)
     out["mc_s"] = time.perf_counter() - t1
     out["mc_runs"] = res.run_indices.tolist()
@@ -200,7 +201,7 @@ def test_two_processes_equal_one_process(tmp_path):
 
     # Monte Carlo: every process holds all 5 runs, equal to one process's to rounding
     assert mc_rel < 1e-9 and trace_rel < 1e-9, (mc_rel, trace_rel)
-    assert np.shape(r0["trace"]) == np.shape(r1["trace"]) == (5, 1 + 1200 // 250)
+    assert np.shape(r0["trace"]) == np.shape(r1["trace"]) == (5, 1 + 1000 // 250)
     assert r0["mc"] == r1["mc"] and r0["trace"] == r1["trace"]  # the same gathered arrays in both processes
     spread = np.ptp(np.asarray(one["mc"]["mean_angle_error_deg"]))
     assert spread > 1e-3  # the runs differ, so a permuted or duplicated run would be caught
