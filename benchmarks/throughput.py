@@ -145,7 +145,7 @@ def measure_observer_only(n_steps: int, dtype: str, *, repeats: int, min_time: f
     dts = jnp.asarray(cfg.dt, dt_)
     go = montecarlo.log_runner(exp.observer(cfg), cfg.hold, dt_)  # what montecarlo.run runs
     t0 = time.perf_counter()
-    compiled = go.lower(p, samples, dts).compile()
+    compiled = jax.jit(go).lower(p, samples, dts).compile()  # the padding (if any) and the scan, one program
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(p, samples, dts))
     tm = C.time_it(lambda: compiled(p, samples, dts), repeats=repeats, min_time=min_time, sync=jax.block_until_ready)
