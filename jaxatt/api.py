@@ -365,6 +365,25 @@ def _run_length(n: int) -> int:
     return 1 + engine.BLOCK * _per_octave(-(-(n - 1) // engine.BLOCK))
 
 
+def _check_recorded_gains(path, params, default, name: str) -> None:
+    """One line unless the params read from a gains file have the fields and shapes of ``name``'s params on
+    recorded data (a study's gains, e.g. the complementary observer tuned on its simulated vector measurements,
+    can hold other shapes)."""
+    got, want = engine.tree_shapes(params), engine.tree_shapes(default)
+    if got == want:
+        return
+    from .fitting import gainsfile
+
+    study = gainsfile.read(path).get("study")
+    where = f"the {study!r} study's scenario" if study else "another set-up"
+    diff = next((f"{k} is {got.get(k)} there, {want.get(k)} here" for k in sorted(set(got) | set(want))
+                 if got.get(k) != want.get(k)), "")  # fmt: skip
+    raise ValueError(
+        f"gains file {path}: gains of {name} learnt on {where}, not for recorded data ({diff}); "
+        "learn gains on recordings with jaxatt.fit / jaxatt broad-tune"
+    )
+
+
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
     """(observer, params, entry or None, name) for a registered name / :class:`~jaxatt.observers.registry.Entry`
     (set up for recorded data, params None -> its shipped or default gains) or a user's :class:`Observer`
@@ -377,7 +396,9 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
         elif isinstance(params, str):
             from .fitting import gainsfile
 
-            params = gainsfile.read_params(params, entry, dtype=dtype)
+            path, params = params, gainsfile.read_params(params, entry, dtype=dtype)
+            if recorded:
+                _check_recorded_gains(path, params, entry.params(dtype=dtype), entry.name)
         elif isinstance(params, dict):
             params = _override(entry.params(dtype=dtype), params, entry.name)
         else:
@@ -961,12 +982,14 @@ def monte_carlo(
     chunk: int = 250,
     trace_every: int = 0,
     progress=None,
+    devices=None,
 ):
     """Monte Carlo of an observer (registered or your own) on a simulated AHRS (:func:`ahrs_scenario` by default,
     ENU): ``runs`` runs of ``duration`` s at 1/``dt`` Hz, run k from key fold_in(PRNGKey(seed), k), metrics reduced
     as the scan runs (:func:`jaxatt.montecarlo.monte_carlo`): per run the mean / max / final angle error (deg)
     over t >= ``window_start`` (default: the last third) and the std of every error of :func:`ahrs_errors`.
-    Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
+    ``devices``: None (default) splits the runs of each chunk over every visible device, an int over that many
+    (1: one device); the result does not depend on it beyond rounding (:func:`jaxatt.montecarlo.monte_carlo`). Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
     are not finite."""
     from . import montecarlo as mc
 
@@ -1012,6 +1035,7 @@ def monte_carlo(
         trace_every=trace_every,
         dtype=dt_,
         progress=progress,
+        devices=devices,
     )
     bad = res.first_nonfinite()
     if bad:

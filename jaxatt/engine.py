@@ -106,6 +106,11 @@ def _short(x, n: int = 60) -> str:
     return r if len(r) <= n else r[: n - 3] + "..."
 
 
+def tree_shapes(tree) -> dict:
+    """``{key path: shape}`` of every leaf of a pytree (e.g. ``{".k": (2,)}``), to compare two params' layouts."""
+    return {jax.tree_util.keystr(k): tuple(jnp.shape(v)) for k, v in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
 def cast_floats(tree, dtype):
     """``tree`` with every floating leaf cast to ``dtype`` (others untouched; None leaves stay None)."""
     return jax.tree_util.tree_map(
@@ -284,8 +289,9 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
         first = (str(e).strip().splitlines() or [""])[0]
         structured = hasattr(params, "_fields") or isinstance(params, (dict, list, tuple))
         given = "" if structured else f" (params is a {type(params).__name__}: pass the params your observer reads)"
+        which = "init, step or output" if observer.output is not None else "init or step"
         raise ValueError(
-            f"observer {name!r}: init or step failed on these params and a sample: {type(e).__name__}: {first}{given}"
+            f"observer {name!r}: {which} failed on these params and a sample: {type(e).__name__}: {first}{given}"
         ) from e
     if not (isinstance(res, (tuple, list)) and not hasattr(res, "_fields") and len(res) == 2):
         got = "None" if res is None else f"{type(res).__name__}"
@@ -330,6 +336,20 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
                 stacklevel=3,
             )
 
+    if observer.output is not None:  # estimate 0 and estimates 1... are stacked into one output array per field
+        (o_paths, o_tree), (s_paths, s_tree) = (jax.tree_util.tree_flatten_with_path(o) for o in (out0, out))
+        if str(o_tree) != str(s_tree):
+            raise ValueError(
+                f"observer {name!r}: output(params, state) must return what step returns as its output (the same "
+                f"type and fields); output gave {_structure(out0)}, step gave {_structure(out)}"
+            )
+        for (path, a), (_, b) in zip(o_paths, s_paths):
+            if a.shape != b.shape or a.dtype != b.dtype:
+                raise ValueError(
+                    f"observer {name!r}: the output field {jax.tree_util.keystr(path)} is {a.dtype}{list(a.shape)} "
+                    f"from output(params, state) but {b.dtype}{list(b.shape)} from step (they must match)"
+                )
+
     if observer.output is None:  # estimate 0 is read from init's state (initial_output): it must hold one
         have = _state_fields(st)
         if not any(tuple(getattr(have.get(k), "shape", ())) == shape for k, shape in (("q", (4,)), ("r", (3, 3)))):
@@ -338,6 +358,12 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
                 f"or r (3x3) (state fields: {sorted(have) or type(st).__name__}); add one to the state or give "
                 "Observer(..., output=fn(params, state))"
             )
+
+
+def _structure(tree) -> str:
+    """A short description of an output's structure: its type and field names, e.g. ``Out(t, q, bias)``."""
+    fields = tree._fields if hasattr(tree, "_fields") else (sorted(tree) if isinstance(tree, dict) else None)
+    return f"{type(tree).__name__}({', '.join(map(str, fields))})" if fields is not None else type(tree).__name__
 
 
 # ------------------------------------------------------------------------------------------------------------

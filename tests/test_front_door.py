@@ -5,6 +5,7 @@ finite difference), and bad input gets one clear line."""
 
 import dataclasses
 import json
+import re
 import warnings
 from typing import NamedTuple
 
@@ -406,6 +407,19 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
             lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, {"q": 2 * st.q})),
             r"sample 1 .* is not a unit quaternion \(norm 2\)",
         ),
+        # an output function whose result is not what step outputs (estimate 0 is stacked with estimates 1...)
+        (
+            lambda g, a, m: _mine(g, a, m, step=my_step, output=lambda p, st: {"q": st.q, "extra": st.t}),
+            r"output\(params, state\) must return what step returns .*output gave dict\(extra, q\), step gave MyOut",
+        ),
+        (
+            lambda g, a, m: _mine(g, a, m, step=my_step, output=lambda p, st: MyOut(st.t, st.q, st.bias[:2])),
+            r"output field \.bias is float\d\d\[2\] from output\(params, state\) but float\d\d\[3\] from step",
+        ),
+        (
+            lambda g, a, m: _mine(g, a, m, step=my_step, output=lambda st: MyOut(st.t, st.q, st.bias)),
+            r"'broken': init, step or output failed .*TypeError",
+        ),
         # monte_carlo's arguments
         (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=0.0), "duration must be a finite positive"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=float("inf")), "duration must be a finite positive"),
@@ -475,9 +489,9 @@ class _PlainParams:  # not registered as a pytree: JAX sees one opaque leaf
     ki: float = 0.3
 
 
-def _mine(g, a, m, *, step):
-    """jaxatt.filter with MY_OBSERVER's init and another step."""
-    return jaxatt.filter(Observer(my_init, step, "broken"), g, a, m, dt=0.01, params=MY_PARAMS)
+def _mine(g, a, m, *, step, output=None):
+    """jaxatt.filter with MY_OBSERVER's init and another step (and an output function)."""
+    return jaxatt.filter(Observer(my_init, step, "broken", output), g, a, m, dt=0.01, params=MY_PARAMS)
 
 
 def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
@@ -1012,3 +1026,20 @@ def test_a_study_fit_takes_a_dict_of_gains_and_honours_hold(tmp_path):
     )
     assert float(res.start_params.epsilon) == 0.4
     assert json.loads(out.read_text())["settings"]["config"]["hold"] == "linear"
+
+
+def test_a_study_gains_file_is_refused_on_recorded_data_with_one_line(tmp_path):
+    """``jaxatt tune --experiment complementary`` learns the study's gains (one vector measurement); the same name's
+    filter on a recording has two (acc, mag). The file is refused when read, naming it, not deep in the scan."""
+    path = tmp_path / "tune.json"
+    gains = {"k": {"value": [0.6]}, "k_i": {"value": 0.0}, "l": {"value": []}}
+    path.write_text(json.dumps({"format": "jaxatt-gains/2", "observer": "complementary", "study": "complementary",
+                                "gains": gains, "status": "done"}))  # fmt: skip
+    g, a, m = np.zeros((50, 3)), np.tile([0, 0, 9.8], (50, 1)), np.tile([0, 20, -40.0], (50, 1))
+    want = rf"gains file {re.escape(str(path))}: gains of complementary learnt on the 'complementary' study's .*\.k is"
+    with pytest.raises(ValueError, match=want) as e:
+        jaxatt.filter("complementary", g, a, m, dt=0.01, params=str(path))
+    assert "\n" not in str(e.value)
+    # the same file is the study's params where a study reads it
+    params = jaxatt.fitting.gainsfile.read_params(path, "complementary")
+    assert np.shape(params.k) == (1,)

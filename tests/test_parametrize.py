@@ -161,19 +161,28 @@ class MyParams(NamedTuple):
 
 
 def test_params_of_your_own_observer():
-    """for_params: every floating field whose values are all > 0 is a positive gain, the others are fixed;
-    tune= names them; a non-positive field cannot be tuned as a positive gain."""
-    p = MyParams(jnp.asarray([0.5, 2.0]), jnp.asarray(3.0), jnp.asarray([-1.0, 1.0]))
-    bound = P.for_params(p).bind(p)
+    """for_params: every floating field whose values are all > 0 is a positive gain, a field with values <= 0 is
+    left fixed with a warning naming it; tune= names the fields, a signed one is then learnt unconstrained (one
+    unit = its largest magnitude); an integer field is refused with one line."""
+    p = MyParams(jnp.asarray([0.5, 2.0]), jnp.asarray(3.0), jnp.asarray([-1.0, 2.0]))
+    with pytest.warns(UserWarning, match=r"fields \['offset'\] have values <= 0 and are left fixed"):
+        bound = P.for_params(p).bind(p)
     assert set(bound.transforms) == {"k", "tau"}
     back = bound.constrain({k: v + 0.3 for k, v in bound.init().items()})
     np.testing.assert_allclose(np.asarray(back.k), np.asarray(p.k) * np.exp(0.3), rtol=1e-12)
     np.testing.assert_array_equal(np.asarray(back.offset), np.asarray(p.offset))
     assert set(P.for_params(p, tune=("tau",)).transforms) == {"tau"}
-    with pytest.raises(ValueError, match="offset"):
-        P.for_params(p, tune=("offset",))
+    signed = P.for_params(p, tune=("offset",)).bind(p)
+    np.testing.assert_allclose(signed.theta0["offset"], [-0.5, 1.0])
+    moved = signed.constrain({"offset": jnp.asarray(signed.theta0["offset"]) + 0.25})
+    np.testing.assert_allclose(np.asarray(moved.offset), [-0.5, 2.5], rtol=1e-12)  # u * 2: unconstrained
     with pytest.raises(ValueError, match="nope"):
         P.for_params(p, tune=("nope",))
+    ints = MyParams(jnp.asarray(1), jnp.asarray(2), jnp.asarray(3))
+    with pytest.raises(ValueError, match=r"params.k = 1 is an integer array, not a gain to tune: give it as floats"):
+        P.for_params(ints, tune=("k",))
+    with pytest.raises(ValueError, match=r"integer fields \['k', 'tau', 'offset'\] are not gains: write 1.0"):
+        P.for_params(ints)
 
 
 def test_bounded_positive_gains_are_projected_into_their_bounds():

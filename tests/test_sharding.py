@@ -58,6 +58,11 @@ SCRIPT = textwrap.dedent(
     out["grad_rel"] = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))
                                 / (np.max(np.abs(np.asarray(b))) + 1e-300)) for a, b in zip(gl2, gl1) if np.size(b))
     out["grad_nonzero"] = sum(float(np.max(np.abs(np.asarray(b)))) > 0 for b in gl1 if np.size(b))
+    # the front door passes devices= on: Mahony on the AHRS scenario, 4 runs over both devices and over one
+    import jaxatt
+    fd = [jaxatt.monte_carlo("mahony", runs=4, duration=0.5, chunk=4, devices=d) for d in (None, 1)]
+    out["front_door_rel"] = max(float(np.max(np.abs(fd[0].per_run[k] - fd[1].per_run[k])
+                                             / (np.abs(fd[1].per_run[k]) + 1e-300))) for k in fd[1].per_run)
     try:
         f2(scn, p, montecarlo.run_keys(0, range(3)))
         out["odd_batch"] = "accepted"
@@ -97,6 +102,7 @@ def test_sharded_monte_carlo_and_gradient_equal_single_device():
     assert abs(l2 - l1) <= 1e-10 * abs(l1) and out["aux_rel"] < 1e-9
     assert out["grad_nonzero"] >= 2 and out["grad_rel"] < 1e-8, out["grad_rel"]
     assert "multiple of 2" in out["odd_batch"]
+    assert out["front_door_rel"] < 1e-9, out["front_door_rel"]
 
 
 def test_progress_reporter_single_device():

@@ -506,27 +506,48 @@ def for_gains(
 
 
 def for_params(params, tune: Optional[Sequence[str]] = None) -> Parametrization:
-    """A Parametrization of a Params NamedTuple of your own: the fields named in ``tune``, or by default every
-    floating field whose values are all > 0, each kept positive (learnt in log space). Other fields are fixed."""
+    """A Parametrization of a Params NamedTuple of your own. By default every floating field whose values are all
+    > 0, kept positive (learnt in log space); a floating field with values <= 0 is left fixed with a warning that
+    names it. ``tune``: the fields to learn, positive ones in log space and the others unconstrained (one unit of
+    the optimiser's variable = the field's largest magnitude, or 1). Integer fields are not gains (write 1.0, not
+    1). Other fields are fixed."""
     if not hasattr(params, "_fields"):
         raise ValueError(f"params must be a NamedTuple (fields are the gains), got {type(params).__name__}")
-    trs = {}
+    if tune is not None:
+        bad = [f for f in tune if f not in params._fields]
+        if bad:
+            raise ValueError(f"tune: {bad} are not fields of {type(params).__name__} (fields: {params._fields})")
+    trs: Dict[str, Transform] = {}
+    signed, integers = [], []
     for f in params._fields:
         v = getattr(params, f)
         if v is None:
             continue
         a = np.asarray(v)
-        positive = np.issubdtype(a.dtype, np.floating) and a.size > 0 and bool(np.all(a > 0))
-        if tune is None and positive:
-            trs[f] = Positive("log")
-        elif tune is not None and f in tune:
-            if not positive:
-                raise ValueError(f"params.{f} = {a} cannot be tuned as a positive gain (all values must be > 0)")
-            trs[f] = Positive("log")
-    if tune is not None:
-        bad = [f for f in tune if f not in params._fields]
-        if bad:
-            raise ValueError(f"tune: {bad} are not fields of {type(params).__name__} (fields: {params._fields})")
+        floating = np.issubdtype(a.dtype, np.floating) and a.size > 0
+        positive = floating and bool(np.all(a > 0))
+        if np.issubdtype(a.dtype, np.integer) or a.dtype == bool:
+            integers.append(f)
+        if tune is None:
+            if positive:
+                trs[f] = Positive("log")
+            elif floating and np.all(np.isfinite(a)):
+                signed.append(f)
+        elif f in tune:
+            if not floating:
+                kind = "an integer array" if f in integers else f"{a.dtype} of size {a.size}"
+                raise ValueError(f"params.{f} = {a} is {kind}, not a gain to tune: give it as floats (e.g. 1.0)")
+            scale = float(np.max(np.abs(a))) if np.all(np.isfinite(a)) else 0.0
+            trs[f] = Positive("log") if positive else Identity(scale=scale if scale > 0 else 1.0)
     if not trs:
-        raise ValueError(f"no positive floating field of {type(params).__name__} to tune; name them with tune=")
+        hint = f" (integer fields {integers} are not gains: write 1.0, not 1)" if integers else ""
+        raise ValueError(f"no positive floating field of {type(params).__name__} to tune{hint}; name them with tune=")
+    if signed:
+        import warnings
+
+        warnings.warn(
+            f"fit: {type(params).__name__} fields {signed} have values <= 0 and are left fixed; name them in tune= to "
+            "learn them unconstrained",
+            stacklevel=3,
+        )
     return Parametrization(trs)
