@@ -989,7 +989,8 @@ def monte_carlo(
     as the scan runs (:func:`jaxatt.montecarlo.monte_carlo`): per run the mean / max / final angle error (deg)
     over t >= ``window_start`` (default: the last third) and the std of every error of :func:`ahrs_errors`.
     ``devices``: None (default) splits the runs of each chunk over every visible device, an int over that many
-    (1: one device); the result does not depend on it beyond rounding (:func:`jaxatt.montecarlo.monte_carlo`). Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
+    (1: one device); the result does not depend on it beyond rounding (:func:`jaxatt.montecarlo.monte_carlo`).
+    Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
     are not finite."""
     from . import montecarlo as mc
 
