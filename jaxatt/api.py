@@ -320,7 +320,7 @@ def _times(t, dt, n: int):
             raise ValueError("t must be finite and strictly increasing (s)" + narrow_timestamps_hint(t_dtype, t))
         return t, True
     try:
-        if isinstance(dt, (bool, np.bool_)):
+        if isinstance(dt, (bool, np.bool_, str, bytes)):
             raise TypeError
         dt = float(dt)
     except (TypeError, ValueError):

@@ -42,6 +42,8 @@ SCENARIOS = ("rotating", "switching", "constant", "two-constant", "body-fixed")
 
 #: Most optimiser steps one ``tune`` / ``broad-tune`` may ask for (a typo's 10**24 would run forever).
 MAX_FIT_STEPS = 10**6
+#: The gains file `jaxatt tune` and `jaxatt broad-tune` write when --out is not given.
+DEFAULT_GAINS_OUT = "gains.json"
 
 
 class UserError(Exception):
@@ -418,7 +420,7 @@ def _parser() -> argparse.ArgumentParser:
         default="adam",
         help="adam; or lbfgs (quasi-Newton with a line search, --lr caps its step): needs --objective varfree",
     )
-    tp.add_argument("--out", default="gains.json", help="gains file, rewritten after every step")
+    tp.add_argument("--out", default=None, help=f"gains file, rewritten after every step ({DEFAULT_GAINS_OUT})")
     tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     _output_flags(tp)
@@ -459,7 +461,7 @@ def _parser() -> argparse.ArgumentParser:
         help="start from this gains file (default: the observer's shipped gains, or its defaults if none are shipped)",
     )
     bt.add_argument("--float64", action="store_true", help="tune in float64 (default float32: faster)")
-    bt.add_argument("--out", default="gains.json", help="the gains file, rewritten after every step (gains.json)")
+    bt.add_argument("--out", default=None, help=f"the gains file, rewritten after every step ({DEFAULT_GAINS_OUT})")
     bt.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
     bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     _output_flags(bt)
@@ -763,7 +765,21 @@ def _finish_study(payload: dict) -> int:
 # ------------------------------------------------------------------------------------------------------------
 # tune / evaluate
 # ------------------------------------------------------------------------------------------------------------
+def _default_gains_out(args) -> None:
+    """``args.out`` = :data:`DEFAULT_GAINS_OUT` when not given; a default that exists (without --resume or
+    --overwrite) is refused here, saying it is the default, so the message does not read as the user's path."""
+    if args.out is not None:
+        return
+    args.out = DEFAULT_GAINS_OUT
+    if os.path.exists(args.out) and not (args.resume or args.overwrite):
+        raise UserError(
+            f"--out {args.out} (the default) exists: give --out PATH for a new gains file, --resume to continue that "
+            "fit or --overwrite to replace it"
+        )
+
+
 def _tune(args) -> int:
+    _default_gains_out(args)
     from . import io
     from .fitting import fitter
 
@@ -988,6 +1004,8 @@ def _broad(args) -> int:
 def _broad_tune(args) -> int:
     from . import io
     from .fitting import fitter
+
+    _default_gains_out(args)
 
     io.check_output_path(
         args.out,
@@ -1245,6 +1263,14 @@ def _excitation(args) -> int:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         args.frame = args.frame or "NED"
         fields = tuple(f for f in ("acc", "mag") if getattr(samples, f) is not None)
+        empty = [f for f in fields if not analysis.valid_readings(getattr(samples, f)).any()]
+        if empty and len(empty) == len(fields):
+            raise UserError(f"--log {args.log}: {' and '.join(empty)} {'has' if len(empty) == 1 else 'have'} no "
+                            "valid reading (every row non-finite or zero): nothing to analyse")  # fmt: skip
+        if empty:
+            print(f"jaxatt excitation: {empty[0]} has no valid reading (every row non-finite or zero): left out",
+                  file=sys.stderr)  # fmt: skip
+            fields = tuple(f for f in fields if f not in empty)
         if "mag" in fields and args.mag_ref is None:
             raise UserError("--mag-ref X,Y,Z is needed to analyse a magnetometer log")
         if args.mag_ref is not None and not np.any(np.asarray(args.mag_ref, float)):
@@ -1407,7 +1433,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             warnings.showwarning = _show_warning
             return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
-        print("jaxatt: interrupted (finished work is saved)", file=sys.stderr)
+        written = getattr(sys.modules.get("jaxatt.io"), "WRITTEN", [])
+        saved = f"saved so far: {', '.join(written)}" if written else "nothing had finished, so nothing was saved"
+        print(f"jaxatt: interrupted ({saved})", file=sys.stderr)
         return 130
     except (UserError, ValueError, FileNotFoundError, ImportError) as e:
         if args.debug:

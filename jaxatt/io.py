@@ -15,7 +15,7 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional, Sequence
+from typing import Any, Callable, List, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -178,6 +178,16 @@ def is_special(p) -> bool:
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
+#: Every path :func:`write_atomic` has written in this process (in order, repeats kept once): what an interrupted
+#: command says it saved.
+WRITTEN: List[str] = []
+
+
+def _written(p: Path) -> None:
+    if str(p) not in WRITTEN:
+        WRITTEN.append(str(p))
+
+
 def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> None:
     """Write a file atomically: ``write(file_object)`` fills a temporary file in the same folder, which is synced
     and renamed onto ``path``; an interrupted write never leaves a broken or partial file (nor a stray temporary).
@@ -188,6 +198,7 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
     if is_special(p):  # a device or FIFO (/dev/null): write into it; renaming over it would replace the device
         with open(p, "wb" if binary else "w") as f:
             write(f)
+        _written(p)
         return
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=str(p.parent))
@@ -200,6 +211,7 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, p)
+        _written(p)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -645,6 +645,25 @@ def test_resume_with_plot_added_is_refused_before_computing(tmp_path):
     assert not (tmp_path / "p.png").exists()
 
 
+def test_an_interrupted_command_says_what_it_saved(tmp_path, monkeypatch, capsys):
+    """The CLI's last word on an interrupt names the files the command wrote, or says it wrote none (an interrupt
+    before the first chunk of a Monte Carlo used to claim that finished work was saved)."""
+    from jaxatt import io
+
+    out = tmp_path / "partial.json"
+
+    def command(args, write=True):
+        if write:
+            io.write_json(out, {"runs_done": 1})
+        raise KeyboardInterrupt
+
+    for write, said in ((False, "nothing had finished, so nothing was saved"), (True, f"saved so far: {out}")):
+        monkeypatch.setattr(io, "WRITTEN", [])
+        monkeypatch.setitem(cli._COMMANDS, "reproduce", lambda args, w=write: command(args, w))
+        assert cli.main(["reproduce", "batista-ges", "--runs", "2"]) == 130
+        assert f"jaxatt: interrupted ({said})" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_sigint_without_an_earlier_result_writes_the_partial_json(tmp_path, sig):
     """Ctrl-C, or SIGTERM (kill, a batch scheduler's time limit), after the first chunk: the partial result is

@@ -131,6 +131,17 @@ def test_excitation_of_a_log_file(tmp_path, capsys):
     assert a["window_s"] == b["window_s"] == 5.0
     for k in ("t_start", "t_end", "lambda2", "condition"):
         np.testing.assert_allclose(b["measures"][k], a["measures"][k], rtol=1e-9, atol=1e-12, err_msg=k)
+    # a sensor without one valid reading is left out, said on stderr (gravity alone: heading unobservable); without
+    # any, the command refuses with one line
+    capsys.readouterr()
+    logs.save_log(path, ImuSample(t, np.tile([0.0, 0.0, 0.5], (len(t), 1)), up, np.full_like(mag, np.nan)))
+    assert cli.main(["excitation", "--log", str(path), "--mag-ref", "0.2,0,0.4", "--window", "2"]) == 0
+    out = capsys.readouterr()
+    assert "mag has no valid reading (every row non-finite or zero): left out" in out.err
+    assert "NOT exciting" in out.out and "(acc; references in NED)" in out.out
+    logs.save_log(path, ImuSample(t, np.tile([0.0, 0.0, 0.5], (len(t), 1)), np.zeros_like(up), None))
+    assert cli.main(["excitation", "--log", str(path), "--window", "2"]) == 2
+    assert "acc has no valid reading (every row non-finite or zero): nothing to analyse" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -341,7 +352,7 @@ def test_filter_command_with_your_own_observer_module(tmp_path, monkeypatch, cap
     assert "importing my_script called sys.exit(0): guard its script part" in capsys.readouterr().err
 
 
-def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
+def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys, monkeypatch):
     from jaxatt import studies
 
     assert cli.TUNABLE_STUDIES == studies.TUNABLE  # the command's choices (kept without importing jax for --help)
@@ -372,6 +383,12 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys):
     # a second tune to the same file is refused unless resumed or overwritten
     assert cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--out", str(gains)]) == 2
     assert "exists" in capsys.readouterr().err
+    # the same without --out: the default gains.json of the working folder, said to be the default
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "gains.json").write_bytes(gains.read_bytes())
+    for cmd in (["tune", "--experiment", "batista-so3"], ["broad-tune", "--observer", "madgwick", "--logs", "x.csv"]):
+        assert cli.main([*cmd, "--steps", "1"]) == 2
+        assert "--out gains.json (the default) exists: give --out PATH" in capsys.readouterr().err
     out = tmp_path / "e.json"
     assert (
         cli.main(

@@ -351,6 +351,7 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
         (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=True), "dt must be a number"),
+        (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt="0.01"), r"dt must be a number of seconds, got '0.01'"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=["a"] * len(g)), "t must be an array of timestamps"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, dtype="float16"), "dtype must be float32"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, dtype="quad"), "dtype must be float32"),

@@ -246,7 +246,7 @@ def test_a_log_without_timestamps_is_timed_by_dt(tmp_path, suffix):
     np.testing.assert_array_equal(q_back, q)
     with pytest.raises(ValueError, match=r"required (column|array) 't' missing .*give the sample period"):
         logs.load_log(p)
-    for bad in (0.0, -1.0, float("nan"), "x", True):  # True is not 1 s
+    for bad in (0.0, -1.0, float("nan"), "x", "0.005", True):  # True is not 1 s, "0.005" is text
         with pytest.raises(ValueError, match="dt must be a"):
             logs.load_log(p, dt=bad)
     logs.save_log(p, s)
@@ -401,6 +401,7 @@ def test_a_logger_s_own_column_names_read_through_columns(tmp_path):
         (["gyr_x"], r"columns must be a mapping of the format's column names to the file's"),
         ({"gyr_x": "GyroQ"}, r"x.csv: column 'GyroQ' \(given in columns\) is not in the header: \['t', 'gyr_x'"),
         ("gyr_x=a,gyr_x=b", r"columns: 'gyr_x' is given more than once"),
+        ("gyr_x=gyr_y", r"required column 'gyr_y' missing: the file's column 'gyr_y' is read as 'gyr_x' \(columns\)"),
         (
             {"GyroX": "gyr_x"},
             r"'GyroX' is not one of .* \(the names on the left are jaxatt's, on the right the file's\)",

@@ -234,7 +234,8 @@ def test_gains_json_round_trip(name, make, tmp_path):
     (tmp_path / "old.json").write_text(json.dumps(old))
     q_old = gainsfile.read_params(str(tmp_path / "old.json"), name)
     np.testing.assert_allclose(np.asarray(q_old.alpha2), np.asarray(p.alpha2), rtol=1e-15)
-    for text, match in (("{", "JSON"), ('{"format": "x"}', "not a jaxatt gains file")):
+    empty = json.dumps({"format": "jaxatt-gains/2", "observer": name, "gains": {}, "status": "done"})
+    for text, match in (("{", "JSON"), ('{"format": "x"}', "not a jaxatt gains file"), (empty, "'gains' is empty")):
         bad.write_text(text)
         with pytest.raises(ValueError, match=match):
             gainsfile.read(str(bad))

@@ -321,7 +321,7 @@ def _datetime_seconds(cells: list, src: str, lines: list) -> np.ndarray:
 def _uniform_times(n: int, dt: Optional[float], src: str) -> np.ndarray:
     """t = 0, dt, 2 dt, ... (s) for a log without timestamps; ``dt`` must be a finite positive number."""
     try:
-        if isinstance(dt, (bool, np.bool_)):  # True would be 1 s
+        if isinstance(dt, (bool, np.bool_, str, bytes)):  # True would be 1 s; "0.01" is text, not a number
             raise TypeError
         step = float(dt)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -430,6 +430,11 @@ def load_csv(
         for c in required:
             if c not in idx:
                 looks = _lookalikes(c, header)
+                if rename and c in rename:  # the file's own column of that name is mapped onto another
+                    raise ValueError(
+                        f"{src}: required column {c!r} missing: the file's column {c!r} is read as {rename[c]!r} "
+                        f"(columns); map another column to {c!r} as well"
+                    )
                 if len(header) == 1:
                     hint = " (separate the columns with commas, semicolons or tabs)"
                 elif looks:

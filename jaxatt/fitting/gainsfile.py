@@ -173,6 +173,8 @@ def read(path) -> dict:
 
 def _checked(d: dict, path) -> dict:
     """``d`` after the checks every reader relies on (ValueError naming the file and the key)."""
+    if not d["gains"]:
+        raise ValueError(f"gains file {path}: 'gains' is empty (no gain to apply)")
     for name, entry in d["gains"].items():
         if not isinstance(entry, Mapping) or "value" not in entry:
             raise ValueError(f"gains file {path}: gain {name!r} must be an object with a 'value'")
