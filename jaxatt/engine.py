@@ -297,19 +297,18 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
         got = "None" if res is None else f"{type(res).__name__}"
         raise ValueError(f"observer {name!r}: step must return a pair (state, output), got {got}")
     new_state, out = res
-    before, tree_before = jax.tree_util.tree_flatten_with_path(st)
-    after, tree_after = jax.tree_util.tree_flatten_with_path(new_state)
-    if str(tree_before) != str(tree_after):
-        raise ValueError(
+    _check_same_layout(
+        st,
+        new_state,
+        lambda ta, tb: (
             f"observer {name!r}: step must return a state with the structure init returns; init gave "
-            f"{tree_before}, step gave {tree_after}"
-        )
-    for (path, a), (_, b) in zip(before, after):
-        if a.shape != b.shape or a.dtype != b.dtype:
-            raise ValueError(
-                f"observer {name!r}: the state field {jax.tree_util.keystr(path) or '(state)'} is "
-                f"{a.dtype}{list(a.shape)} after init but {b.dtype}{list(b.shape)} after step (they must match)"
-            )
+            f"{ta}, step gave {tb}"
+        ),
+        lambda key, a, b: (
+            f"observer {name!r}: the state field {key or '(state)'} is {a} after init but {b} after "
+            "step (they must match)"
+        ),
+    )
     outputs = [("step", out)] + ([("output", out0)] if observer.output is not None else [])
     for where, o in outputs:
         if not (hasattr(o, "_fields") or isinstance(o, dict)):
@@ -337,18 +336,18 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
             )
 
     if observer.output is not None:  # estimate 0 and estimates 1... are stacked into one output array per field
-        (o_paths, o_tree), (s_paths, s_tree) = (jax.tree_util.tree_flatten_with_path(o) for o in (out0, out))
-        if str(o_tree) != str(s_tree):
-            raise ValueError(
-                f"observer {name!r}: output(params, state) must return what step returns as its output (the same "
-                f"type and fields); output gave {_structure(out0)}, step gave {_structure(out)}"
-            )
-        for (path, a), (_, b) in zip(o_paths, s_paths):
-            if a.shape != b.shape or a.dtype != b.dtype:
-                raise ValueError(
-                    f"observer {name!r}: the output field {jax.tree_util.keystr(path)} is {a.dtype}{list(a.shape)} "
-                    f"from output(params, state) but {b.dtype}{list(b.shape)} from step (they must match)"
-                )
+        _check_same_layout(
+            out0,
+            out,
+            lambda ta, tb: (
+                f"observer {name!r}: output(params, state) must return what step returns as its output "
+                f"(the same type and fields); output gave {_structure(out0)}, step gave {_structure(out)}"
+            ),
+            lambda key, a, b: (
+                f"observer {name!r}: the output field {key} is {a} from output(params, state) but {b} "
+                "from step (they must match)"
+            ),
+        )
 
     if observer.output is None:  # estimate 0 is read from init's state (initial_output): it must hold one
         have = _state_fields(st)
@@ -357,6 +356,19 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
                 f"observer {name!r}: estimate 0 is read from init's state, which has no field q (4,) (w, x, y, z) "
                 f"or r (3x3) (state fields: {sorted(have) or type(st).__name__}); add one to the state or give "
                 "Observer(..., output=fn(params, state))"
+            )
+
+
+def _check_same_layout(a, b, structure_message: Callable, field_message: Callable) -> None:
+    """ValueError unless the pytrees of shapes ``a`` and ``b`` have one structure and equal leaf shapes and dtypes:
+    ``structure_message(treedef_a, treedef_b)`` or ``field_message(key path, "dtype[shape]" of a, of b)``."""
+    (leaves_a, tree_a), (leaves_b, tree_b) = (jax.tree_util.tree_flatten_with_path(x) for x in (a, b))
+    if str(tree_a) != str(tree_b):
+        raise ValueError(structure_message(tree_a, tree_b))
+    for (path, x), (_, y) in zip(leaves_a, leaves_b):
+        if x.shape != y.shape or x.dtype != y.dtype:
+            raise ValueError(
+                field_message(jax.tree_util.keystr(path), f"{x.dtype}{list(x.shape)}", f"{y.dtype}{list(y.shape)}")
             )
 
 
