@@ -46,6 +46,18 @@ def test_reproduce_batista_so3_writes_metrics_json(tmp_path):
     for key in ("std_m", "std_v", "std_r_err", "final_angle_error_deg"):
         assert np.isfinite(m[key]["mean"])
     assert d["config"]["integrator"] == "lie" and d["config"]["m_init"] == "rescaled"
+    # every metric's unit, from the study's (Table 2's std_m in nT; |m~| at the end in the same unit)
+    assert set(d["metric_units"]) == set(m)
+    assert d["metric_units"]["std_m"] == d["metric_units"]["final_norm_m"] == "nT"
+    assert d["metric_units"]["std_v"] == "nT^2/s" and d["metric_units"]["max_angle_error_deg"] == "deg"
+
+
+def test_metric_units_follow_the_error_each_metric_is_of():
+    from jaxatt.studies import base
+
+    per_run = dict.fromkeys(["mean_angle_error_deg", "std_x1", "final_norm_x1", "rmse_steady_bias", "n_rest"])
+    got = base.metric_units(per_run, {"std_x1": "nT"}, {"bias": "deg/s", "s": "1"})
+    assert got == {"mean_angle_error_deg": "deg", "std_x1": "nT", "final_norm_x1": "nT", "rmse_steady_bias": "deg/s"}
 
 
 def test_observer_specific_flags_are_checked(capsys):

@@ -248,8 +248,9 @@ class Study(abc.ABC):
     Class attributes: ``name`` (CLI name), ``paper`` (reference, with the section), ``tuned`` (label of the observer
     that ``jaxatt tune`` tunes), ``entry`` (its registry name), ``fittable`` (registry name -> label of the other
     observers the fitter may tune on this study, ``jaxatt.fit(observer=name, data=study)``), ``loss_kind``
-    (pointwise loss of :mod:`jaxatt.fitting.losses`), ``units`` (metric -> unit, for tables), ``rows`` ((metric,
-    label) rows of the table).
+    (pointwise loss of :mod:`jaxatt.fitting.losses`), ``units`` (metric -> unit, for tables), ``error_units``
+    (error name of :meth:`errors` -> unit, for the metrics of the JSON; ``std_<e>`` in ``units`` gives ``e``'s
+    too), ``rows`` ((metric, label) rows of the table).
     """
 
     name: str = ""
@@ -259,6 +260,7 @@ class Study(abc.ABC):
     fittable: Mapping[str, str] = {}
     loss_kind: str = "angle_sq"
     units: Mapping[str, str] = {}
+    error_units: Mapping[str, str] = {}
     rows: Sequence[Tuple[str, str]] = ()
 
     # ---- configuration -------------------------------------------------------------------------------
@@ -400,6 +402,25 @@ class Study(abc.ABC):
 # ------------------------------------------------------------------------------------------------------------
 # Tables
 # ------------------------------------------------------------------------------------------------------------
+def metric_units(
+    per_run: Mapping[str, Any], units: Mapping[str, str], error_units: Mapping[str, str]
+) -> Dict[str, str]:
+    """The unit of each Monte Carlo metric that has one: ``*_deg`` in deg; a name in the study's ``units``; any
+    other metric of an error ``e`` (``std_e``, ``final_norm_e``, ``rmse_steady_e``, ...: the name ends in ``_e``)
+    in ``e``'s unit (``error_units``, or ``units["std_e"]``; the longest matching error name)."""
+    errs = {k[len("std_") :]: u for k, u in units.items() if k.startswith("std_")}
+    errs.update(error_units)
+    by_length = sorted(errs.items(), key=lambda eu: -len(eu[0]))
+    out = {}
+    for key in per_run:
+        unit = "deg" if key.endswith("_deg") else units.get(key)
+        if unit is None:
+            unit = next((u for e, u in by_length if key.endswith("_" + e)), None)
+        if unit is not None:
+            out[key] = unit
+    return out
+
+
 def table(rows: Sequence[Tuple[str, str]], payload: dict, units: Mapping[str, str]) -> str:
     """quantity | paper | measured (mean over runs) | std over runs | ratio, for the single compared observer."""
     values, paper = payload.get("metrics", {}), payload.get("paper", {})
@@ -507,6 +528,7 @@ def reproduce(
             e = {
                 "runs_done": len(res.run_indices),
                 "metrics": io.summarise(res.per_run),
+                "metric_units": metric_units(res.per_run, study.units, study.error_units),
                 "timing": {
                     "wall_s": time.perf_counter() - t0,
                     "runs": len(res.run_indices),
@@ -699,6 +721,7 @@ def _finish(payload: dict, complete: bool) -> None:
     payload["runs_done"] = min((e["runs_done"] for e in entries.values()), default=0)
     if len(entries) == 1:
         payload["metrics"] = next(iter(entries.values()))["metrics"]
+        payload["metric_units"] = next(iter(entries.values())).get("metric_units", {})
 
 
 def evaluate(

@@ -555,6 +555,7 @@ class NLIOStudy(base.Study):
     loss_kind = "euler_sq"
     entry = "nlio-fg"
     tuned = "NLIO-FG"
+    error_units = {"roll": "deg", "pitch": "deg", "yaw": "deg", "bias": "deg/s", "acc": "m/s^2", "mag": "G"}
     fittable = {"nlio": "NLIO-TV", "nlo": "NLO", "mekf": "MEKF"}
 
     def __init__(self, name: str):
