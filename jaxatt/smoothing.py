@@ -633,6 +633,7 @@ def broad_metric_fn(
     fn = compiled(
         observer,
         int(padded.samples.t.shape[1]) - 1,
+        per_step_dt=padded.dt is not None,
         hold=hold,
         obs_dtype=dtype,
         trust=spec.trust,

@@ -213,6 +213,26 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
         assert got.total_rmse_deg == pytest.approx(ref["total_rmse_deg"], rel=1e-9)
     assert score.trials["late"].total_rmse_deg != pytest.approx(score.trials["phone"].total_rmse_deg, rel=1e-3)
     assert set(score.groups) == {"mine", "own", "all"} and score.groups["mine"].n_trials == 1
+    # a recording whose rate changes half-way (the second half at 50 Hz) is scanned on its own timestamps: the
+    # score is still the numpy metric of jaxatt.filter's estimate (it was the scan at a constant 1 / 100 Hz), with
+    # a uniform trial beside it in the batch
+    keep = np.ones(len(s.t), bool)
+    keep[151::2] = False
+    mixed = trial._replace(
+        name="mixed",
+        samples=ImuSample(*(np.asarray(a)[keep] for a in trial.samples)),
+        quat_true=trial.quat_true[keep],
+        movement=trial.movement[keep],
+    )
+    padded = broad.pad_trials([trial, mixed])
+    assert (
+        padded.dt is not None and padded.dt[1, 200] == pytest.approx(0.02) and padded.dt[0, 200] == pytest.approx(0.01)
+    )
+    assert broad.pad_trials([trial, late]).dt is None  # uniform trials: the constant step, as BROAD's filters
+    score = jaxatt.broad_score("mahony", None, [trial, mixed])
+    for tr in (trial, mixed):
+        ref = broad.broad_errors(jaxatt.filter("mahony", tr.samples).quat, tr.quat_true, tr.movement)
+        assert score.trials[tr.name].total_rmse_deg == pytest.approx(ref["total_rmse_deg"], rel=1e-9), tr.name
     with pytest.raises(ValueError, match=r"no ground truth \(columns quat_w"):
         logs.save_log(tmp_path / "no_truth.csv", s)
         logs.load_trial(tmp_path / "no_truth.csv")

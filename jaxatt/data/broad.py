@@ -131,6 +131,9 @@ class PaddedTrials(NamedTuple):
         lengths: (B,) int, number of real samples.
         names: tuple of B trial names.
         rate_hz: (B,) sampling rates (Hz).
+        dt: None when every trial is sampled uniformly at its rate (steps within 0.1 % of 1 / rate: each is scanned
+            with the constant step 1 / rate, as BROAD's filters do), else (B, T) the step of each sample in s,
+            dt[:, k] = t_k - t_{k-1} from the trials' own timestamps (dt[:, 0] unused; 1 / rate on the padding).
     """
 
     samples: ImuSample
@@ -140,6 +143,7 @@ class PaddedTrials(NamedTuple):
     lengths: np.ndarray
     names: tuple
     rate_hz: np.ndarray
+    dt: Optional[np.ndarray] = None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -534,7 +538,9 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
     """Stack trials of different lengths into (B, T_max, ...) arrays for ``vmap``.
 
     Padding repeats each trial's last sample (finite data, so no NaN enters a scan or a gradient); ``mask`` is
-    False there and ``movement`` is False there. Time continues at the trial's rate on the padding. A batch
+    False there and ``movement`` is False there. t is each trial's own timestamps from its first (t - t_0), and
+    continues at the trial's rate on the padding; a trial whose steps are not uniform (a gap, a change of rate)
+    makes the batch's steps per sample (``dt``). A batch
     longer than one :data:`jaxatt.engine.BLOCK` of steps is padded to a whole number of blocks (T_max - 1 a
     multiple of BLOCK): the compiled scan then holds one copy of the observer's step, not a second one for a
     partial last block (at most BLOCK - 1 more padded samples per trial).
@@ -554,24 +560,33 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
         return np.concatenate([a, reps], axis=0)
 
     ts, gyr, acc, mag, qt, mov, mask = [], [], [], [], [], [], []
+    uniform = True
     for tr, n in zip(trials, lengths):
-        ts.append(np.arange(tmax, dtype=np.float64) / tr.rate_hz)
+        t = np.asarray(tr.samples.t, np.float64)
+        t = t - t[0]
+        uniform = uniform and (n < 2 or float(np.max(np.abs(np.diff(t) * tr.rate_hz - 1.0))) <= UNIFORM_TOLERANCE)
+        ts.append(np.concatenate([t, t[-1] + np.arange(1, tmax - n + 1, dtype=np.float64) / tr.rate_hz]))
         gyr.append(pad(tr.samples.gyr, n))
         acc.append(pad(tr.samples.acc, n))
         mag.append(pad(tr.samples.mag, n))
         qt.append(pad(tr.quat_true, n))
         mov.append(np.concatenate([tr.movement, np.zeros(tmax - n, bool)]))
         mask.append(np.arange(tmax) < n)
+    rates = np.array([tr.rate_hz for tr in trials], float)
+    if uniform:  # the timestamps BROAD's filters assume: k / rate
+        ts = [np.arange(tmax, dtype=np.float64) / r for r in rates]
     samples = ImuSample(np.stack(ts), np.stack(gyr), np.stack(acc), np.stack(mag))
+    dt = None
+    if not uniform:
+        dt = np.diff(samples.t, axis=1, prepend=samples.t[:, :1] - 1.0 / rates[:, None])
     return PaddedTrials(
-        samples,
-        np.stack(mask),
-        np.stack(qt),
-        np.stack(mov),
-        lengths,
-        tuple(tr.name for tr in trials),
-        np.array([tr.rate_hz for tr in trials], float),
+        samples, np.stack(mask), np.stack(qt), np.stack(mov), lengths, tuple(tr.name for tr in trials), rates, dt
     )
+
+
+#: Largest |step x rate - 1| of a trial scanned with the constant step 1 / rate (:func:`pad_trials`): timestamps
+#: rounded to 1e-6 s at 1 kHz, or a clock's ppm drift, stay below it; a gap or a change of rate does not.
+UNIFORM_TOLERANCE = 1e-3
 
 
 def step_dt(rate_hz, dtype):
@@ -582,9 +597,10 @@ def step_dt(rate_hz, dtype):
 
 def batch_item(padded: PaddedTrials, dtype) -> dict:
     """The engine's recorded batch of padded trials: samples (B, T, ...) as given (cast in the scan), a constant
-    dt per trial (1 / rate in ``dtype``) and the truth the BROAD reducer scores against: ``q`` (B, T, 4)
-    sensor-to-ENU with missing rows replaced by the identity and ``use`` (B, T) = movement & real sample &
-    finite truth (so no NaN enters a scan or a gradient)."""
+    dt per trial (1 / rate in ``dtype``; (B, T) steps from the timestamps when ``padded.dt`` holds them: then
+    scan it with ``engine.Recorded(n_steps, per_step_dt=True)``) and the truth the BROAD reducer scores against:
+    ``q`` (B, T, 4) sensor-to-ENU with missing rows replaced by the identity and ``use`` (B, T) = movement & real
+    sample & finite truth (so no NaN enters a scan or a gradient)."""
     qt = np.asarray(padded.quat_true, np.float64)
     finite = np.all(np.isfinite(qt), axis=-1)
     qt = np.where(finite[..., None], qt, np.array([1.0, 0.0, 0.0, 0.0]))
@@ -592,7 +608,7 @@ def batch_item(padded: PaddedTrials, dtype) -> dict:
     hi = jnp.result_type(float)
     return {
         "samples": jax.tree_util.tree_map(jnp.asarray, padded.samples),
-        "dt": jnp.asarray(step_dt(padded.rate_hz, dtype)),
+        "dt": jnp.asarray(step_dt(padded.rate_hz, dtype) if padded.dt is None else np.asarray(padded.dt, dtype)),
         "truth": {"q": jnp.asarray(qt, hi), "use": jnp.asarray(use)},
     }
 
@@ -647,7 +663,7 @@ def metric_batch(
     n_steps = int(padded.samples.t.shape[1]) - 1
     fn = engine.compiled(
         observer,
-        engine.Recorded(n_steps, False),
+        engine.Recorded(n_steps, padded.dt is not None),
         METRIC_REDUCER,
         hold=hold,
         obs_dtype=dtype,
