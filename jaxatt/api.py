@@ -109,14 +109,19 @@ def _valid_rows(a: np.ndarray) -> np.ndarray:
         return np.all(np.isfinite(a), axis=-1) & np.any(a != 0, axis=-1)
 
 
+def _starts_from_first_sample(entry) -> bool:
+    return entry is not None and (entry.setup is not None or bool(entry.init_reads))
+
+
 def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray]):
     """(acc, mag) for a registered observer that sets its start and references up from the first sample (an
-    entry with ``setup``: TRIAD and the field and gravity references): a missing acc / mag reading in row 0 is
+    entry with ``setup``: TRIAD and the field and gravity references; or one whose ``init_reads`` names the
+    sensors, e.g. the robust AHRS's TRIAD and field norm and dip): a missing acc / mag reading in row 0 is
     replaced by that sensor's first present reading (row 0 only feeds ``init`` on hold "next"; other rows stay
     missing). A sensor with no present reading at all gets a zero row 0 (missing by the same convention, and no
     NaN in the set-up: its degenerate TRIAD keeps the inclination, the observer's own handling of a dead
     magnetometer)."""
-    if entry is None or entry.setup is None:
+    if not _starts_from_first_sample(entry):
         return acc, mag
     out: List[Optional[np.ndarray]] = []
     for a in (acc, mag):
@@ -130,7 +135,7 @@ def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray]
 
 def trials_start_from_valid(entry, trials: list) -> list:
     """:func:`start_from_valid` on each trial's samples (a trial whose row 0 has all its readings is kept as is)."""
-    if entry is None or entry.setup is None:
+    if not _starts_from_first_sample(entry):
         return trials
     out = []
     for tr in trials:
@@ -877,7 +882,7 @@ def broad_score(
             stacklevel=2,
         )
     elif entry is not None:
-        six = [tr.name for tr in trials if not np.isfinite(np.asarray(tr.samples.mag)).any()]
+        six = [tr.name for tr in trials if not _valid_rows(np.asarray(tr.samples.mag)).any()]  # zero = missing
         if six:
             warnings.warn(
                 f"trial{'s' if len(six) > 1 else ''} {', '.join(six)} ha{'ve' if len(six) > 1 else 's'} no "

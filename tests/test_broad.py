@@ -33,9 +33,11 @@ def broad_protocol_quats(trials, kp, ki, dtype):
     ENU in float64. In jaxatt's alignment (T estimates, estimate 0 = init's, hold="next": estimate k uses sample k)
     that is the log with sample 0 duplicated, estimates 1 ... N. Every trial in one padded batch (one compile);
     returns the list of (N, 4) sensor-to-ENU estimates."""
-    dup = [
+    dup = [  # the first sample twice, at BROAD's constant rate (k / rate: a uniform trial, the constant step)
         tr._replace(
-            samples=jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples),
+            samples=jax.tree_util.tree_map(lambda a: np.concatenate([a[:1], a]), tr.samples)._replace(
+                t=np.arange(len(tr.samples.t) + 1) / tr.rate_hz
+            ),
             quat_true=np.concatenate([tr.quat_true[:1], tr.quat_true]),
             movement=np.concatenate([[False], tr.movement]),
         )

@@ -238,6 +238,7 @@ def test_broad_score_offline_is_the_metric_of_the_smoothed_estimate():
     smoother = S.compiled(  # the program broad_score runs (S.compiled is cached on its arguments)
         registry.recorded_observer("robust"),
         broad.pad_trials(trials).samples.t.shape[1] - 1,  # the trial padded to whole blocks of steps
+        per_step_dt=False,  # a BROAD trial: uniform steps
         hold="next",
         obs_dtype=np.dtype(np.float64),
         trust=off.trust,

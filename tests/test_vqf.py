@@ -151,3 +151,21 @@ def test_check_params():
     assert {k: float(v) for k, v in vqf_package.VQF(0.01).params.items()} == {
         vqf.PACKAGE_NAMES[f]: float(getattr(vqf.default_params(), f)) for f in vqf.PACKAGE_NAMES
     }
+
+
+def test_a_gap_in_the_timestamps_costs_the_gyro_integration_not_a_filter_transient():
+    """A 1-s gap in a 100-Hz recording: each Butterworth low-pass restarts from its last output when the step
+    jumps (vqf.TS_JUMP). Its state, driven through the 1-s step's coefficients and then the 0.01-s ones again,
+    swung the inclination by ~30 deg for ~20 s. Now the error after the gap stays at the error before it plus what
+    the gyro integrates across the gap, and a constant step is untouched (the BROAD tests above)."""
+    from jaxatt import so3
+
+    scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-3, acc_noise_std=0.02, mag_noise_std=0.5, gyro_bias=(0, 0, 0))
+    samples, truth = montecarlo.simulate_log(scn, duration=40.0, dt=0.01, seed=4)
+    keep = np.ones(len(samples.t), bool)
+    keep[2000:2100] = False  # 20.00 ... 20.99 s missing
+    cut = ImuSample(*(np.asarray(a)[keep] for a in samples))
+    est = jaxatt.filter("vqf", cut)
+    err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(np.asarray(truth.r)[keep]), jnp.asarray(est.rotation))))
+    before, after = err[1500:2000].max(), err[2000:3900].max()
+    assert after < before + 1.0, (before, after)

@@ -280,5 +280,6 @@ ENTRIES = (
         hold="next",
         module="madgwick",
         check=check_params,
+        init_reads=("acc", "mag"),
     ),
 )

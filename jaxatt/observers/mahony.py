@@ -429,5 +429,6 @@ ENTRIES = (
         hold="next",
         module="mahony",
         check=check_params,
+        init_reads=("acc", "mag"),
     ),
 )

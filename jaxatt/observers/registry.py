@@ -97,6 +97,10 @@ class Entry(NamedTuple):
             given (e.g. the robust AHRS tuned on BROAD), or None.
         module: the module that declares it (docs page: docs/observers/<module>.md).
         check: optional ``check(params)`` raising ValueError with a clear message.
+        recorded: False for an observer not set up for recorded data.
+        init_reads: the sensors whose first reading ``init`` starts from (its attitude, its references) without a
+            ``setup``: on recorded data a missing reading in row 0 of them is replaced by that sensor's first
+            present one (:func:`jaxatt.api.start_from_valid`), as for an observer with ``setup``.
     """
 
     name: str
@@ -114,6 +118,7 @@ class Entry(NamedTuple):
     module: str = ""
     check: Optional[Callable[[Any], None]] = None
     recorded: bool = True
+    init_reads: Tuple[str, ...] = ()
 
     def gain(self, field: str) -> Gain:
         for g in self.gains:

@@ -44,7 +44,9 @@ at e_h = 2 (w = 0.5 at the threshold):
 * magnetometer: e = ((|m| - n_ref) / (``mag_norm_th`` n_ref))^2 + ((dip - dip_ref) / ``mag_dip_th``)^2 scales the
   heading correction; the references n_ref and dip_ref (dip = elevation of m_E, negative when the field points
   down) start from the first sample and follow the field with time constant ``tau_mag_ref`` while undisturbed.
-  Limitation: a field that is disturbed from the first sample on and never returns is rejected for good.
+  Limitation: a field that is disturbed from the first sample on and never returns is rejected for good. The
+  front door (``jaxatt.filter``, ``broad_score``, ``fit`` on recordings) starts a recording whose first acc / mag
+  reading is missing from that sensor's first present one (``Entry.init_reads``).
 
 Frames and units. R^ (and q^, Hamilton (w, x, y, z)) maps sensor coordinates to ENU (x East, y North - the
 horizontal direction of the local magnetic field -, z Up): v_ENU = R^ v_sensor, as BROAD and VQF. Gyro rad/s,
@@ -828,5 +830,6 @@ ENTRIES = (
         shipped="robust_broad_all.json",
         module="robust_ahrs",
         check=check_params,
+        init_reads=("acc", "mag"),
     ),
 )

@@ -228,12 +228,21 @@ def default_params(dtype=None, **overrides) -> Params:
 class Lp(NamedTuple):
     """State of one vector low-pass filter with the package's averaging start (``filterVec``): during the first
     tau seconds the output is the running mean (``n`` samples, ``total`` their sum); then the second-order
-    Butterworth filter (state ``z`` (2, N), direct form II transposed, as ``filterStep``) starts from it."""
+    Butterworth filter (state ``z`` (2, N), direct form II transposed, as ``filterStep``) starts from it. ``y``:
+    the last output; ``ts``: the step (s) of the last update (0 before the first)."""
 
     n: jax.Array
     total: jax.Array
     z: jax.Array
     ready: jax.Array
+    y: jax.Array
+    ts: jax.Array
+
+
+#: A step whose length differs from the last one's by more than this fraction (a gap in a recording, a change of
+#: rate) restarts each Butterworth low-pass at its last output (:func:`_filter_vec`). The package runs at one fixed
+#: Ts and never meets it; timestamp jitter stays far below it.
+TS_JUMP = 0.5
 
 
 class State(NamedTuple):
@@ -425,20 +434,34 @@ def _gain_from_tau(tau, ts):
 
 def _lp_new(n_dim, dtype):
     return Lp(
-        n=jnp.zeros((), dtype), total=jnp.zeros(n_dim, dtype), z=jnp.zeros((2, n_dim), dtype), ready=jnp.zeros((), bool)
+        n=jnp.zeros((), dtype),
+        total=jnp.zeros(n_dim, dtype),
+        z=jnp.zeros((2, n_dim), dtype),
+        ready=jnp.zeros((), bool),
+        y=jnp.zeros(n_dim, dtype),
+        ts=jnp.zeros((), dtype),
     )
 
 
 def _filter_vec(x, tau, ts, b, a, st: Lp):
     """``VQF::filterVec``: the running mean for the first tau seconds, then the Butterworth filter started at
-    the steady state of that mean (``filterInitialState``). Returns (y, new state)."""
+    the steady state of that mean (``filterInitialState``). Returns (y, new state).
+
+    The package's coefficients are those of one fixed Ts; here each step has its own (b, a) from its dt, and the
+    state ``z`` of one coefficient set is not that of another. With a constant step nothing changes; when the step
+    jumps by more than :data:`TS_JUMP` (a gap of a recording: 0.01 s, then 1 s, then 0.01 s again) the filter
+    restarts from the steady state of its last output (as ``filterInitialState`` does from the mean), instead of
+    the transient that the old state drives through the new coefficients (VQF's inclination off by ~30 deg
+    for ~20 s after a 1-s gap)."""
     n1 = st.n + 1
     total1 = st.total + x
     mean = total1 / n1
     now_ready = n1 * ts >= tau
     z_init = jnp.stack([mean * (1 - b[0]), mean * (b[2] - a[1])])
-    y_run = b[0] * x + st.z[0]
-    z_run = jnp.stack([b[1] * x - a[0] * y_run + st.z[1], b[2] * x - a[1] * y_run])
+    jump = st.ready & (jnp.abs(ts - st.ts) > TS_JUMP * st.ts)
+    z_prev = jnp.where(jump, jnp.stack([st.y * (1 - b[0]), st.y * (b[2] - a[1])]), st.z)
+    y_run = b[0] * x + z_prev[0]
+    z_run = jnp.stack([b[1] * x - a[0] * y_run + z_prev[1], b[2] * x - a[1] * y_run])
     y = jnp.where(st.ready, y_run, mean)
     z = jnp.where(st.ready, z_run, jnp.where(now_ready, z_init, st.z))
     new = Lp(
@@ -446,6 +469,8 @@ def _filter_vec(x, tau, ts, b, a, st: Lp):
         total=jnp.where(st.ready, st.total, total1),
         z=z,
         ready=st.ready | now_ready,
+        y=y,
+        ts=jnp.asarray(ts, st.ts.dtype) * jnp.ones_like(st.ts),
     )
     return y, new
 
