@@ -538,9 +538,10 @@ def pad_trials(trials: Sequence[Trial]) -> PaddedTrials:
     """Stack trials of different lengths into (B, T_max, ...) arrays for ``vmap``.
 
     Padding repeats each trial's last sample (finite data, so no NaN enters a scan or a gradient); ``mask`` is
-    False there and ``movement`` is False there. t is each trial's own timestamps from its first (t - t_0), and
-    continues at the trial's rate on the padding; a trial whose steps are not uniform (a gap, a change of rate)
-    makes the batch's steps per sample (``dt``). A batch
+    False there and ``movement`` is False there. t is k / rate when every trial's steps are uniform (within
+    :data:`UNIFORM_TOLERANCE`); a trial whose steps are not (a gap, a change of rate) makes t each trial's own
+    timestamps from its first (t - t_0) and the batch's steps per sample (``dt``). On the padding, time continues
+    at the trial's rate. A batch
     longer than one :data:`jaxatt.engine.BLOCK` of steps is padded to a whole number of blocks (T_max - 1 a
     multiple of BLOCK): the compiled scan then holds one copy of the observer's step, not a second one for a
     partial last block (at most BLOCK - 1 more padded samples per trial).
