@@ -1010,6 +1010,10 @@ def monte_carlo(
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold)
+    if entry is not None and "mag" not in entry.needs:
+        from .studies.ahrs import SIX_D_NOTE
+
+        warnings.warn(SIX_D_NOTE.format(name=name), stacklevel=2)
     from .sim.ahrs import AhrsScenario
 
     scn = scenario if scenario is not None else ahrs_scenario()

@@ -331,6 +331,11 @@ def _simulation(
         raise ValueError(f"duration ({duration:g} s) must be a whole number of steps of dt = {dt:g} s")
     if trace_every and engine.BLOCK % trace_every:
         raise ValueError(f"trace_every must divide {engine.BLOCK}, got {trace_every}")
+    if trace_every > n_steps:
+        raise ValueError(
+            f"trace_every = {trace_every} steps is longer than the run ({n_steps} steps of {dt:g} s): the trace would "
+            "hold only the estimate at t = 0; give a smaller trace_every (a divisor of the steps you want)"
+        )
     obs_dtype, sim_dtype = _dtypes(dtype)
     source = engine.Simulated(n_steps, dt, sim_dtype, init_params)
     reducer = metrics_reducer(

@@ -874,3 +874,12 @@ def test_simulate_refuses_each_flag_its_observer_does_not_take(observer):
     assert sorted(refused) == sorted(SIMULATE_REFUSED[observer])
     kind = {"madgwick": "ahrs", "complementary": "complementary", "batista-ges": "batista"}[observer]
     assert set(cli._SIMULATE_FLAGS) - cli._SIMULATE_TAKES[kind] == set(SIMULATE_REFUSED[observer])
+
+
+def test_reproduce_batista_ges_plot_of_a_run_shorter_than_its_trace_interval(tmp_path):
+    """The batista-ges figure traces run 0 every 0.1 s; a run of 5 steps is traced at every step (a trace interval
+    longer than the run is refused by the Monte Carlo), and the figure is written."""
+    png = tmp_path / "ges.png"
+    argv = ["reproduce", "batista-ges", "--runs", "1", "--duration", "0.05", "--quiet", "--plot", str(png)]
+    assert cli.main(argv) == 0
+    assert png.stat().st_size > 10_000

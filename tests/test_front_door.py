@@ -473,6 +473,10 @@ def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_l
         (lambda g, a, m: jaxatt.monte_carlo("mahony", runs=2**33), "runs must be <= "),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", chunk=0), "chunk must be >= 1"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", trace_every=-1), "trace_every must be >= 0"),
+        (
+            lambda g, a, m: jaxatt.monte_carlo("mahony", duration=1.0, trace_every=1000),
+            r"trace_every = 1000 steps is longer than the run \(100 steps of 0.01 s\)",
+        ),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=2**70), "seed must fit in 64 bits"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", seed=None), "seed must be an integer"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", scenario="x"), "scenario must be an AHRS scenario"),
@@ -1087,3 +1091,16 @@ def test_a_study_gains_file_is_refused_on_recorded_data_with_one_line(tmp_path):
     # the same file is the study's params where a study reads it
     params = jaxatt.fitting.gainsfile.read_params(path, "complementary")
     assert np.shape(params.k) == (1,)
+
+
+def test_a_6d_filter_s_monte_carlo_says_its_heading_is_not_observable():
+    """vqf-6d has no magnetometer: its angle errors include the heading's gyro drift. jaxatt.monte_carlo warns
+    (before anything runs) and the CLI's notes say so; a 9D filter's notes do not."""
+    from jaxatt import studies
+
+    with pytest.warns(UserWarning, match="vqf-6d does not use the magnetometer: its heading is not observable"):
+        with pytest.raises(ValueError, match="duration must be a finite positive"):
+            jaxatt.monte_carlo("vqf-6d", duration=0.0)
+    ahrs = studies.get("ahrs")
+    assert any("compare std_roll and std_pitch" in n for n in ahrs.notes(ahrs.config(observer="vqf-6d")))
+    assert not any("not observable" in n for n in ahrs.notes(ahrs.config(observer="vqf")))

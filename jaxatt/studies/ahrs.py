@@ -16,10 +16,16 @@ from __future__ import annotations
 from typing import NamedTuple, Sequence
 
 from .. import api
+from ..observers import registry
 from ..types import check_step_count
 from . import base
 
 NAME = "ahrs"
+#: Said of a 6D filter's Monte Carlo (the CLI's notes, a warning of jaxatt.monte_carlo).
+SIX_D_NOTE = (
+    "{name} does not use the magnetometer: its heading is not observable and drifts with the gyro, so the angle "
+    "errors (mean / max / final) and std_yaw include that drift; compare std_roll and std_pitch"
+)
 DURATION = 60.0  # s
 DT = 0.01  # s
 UNITS = {
@@ -130,7 +136,7 @@ class AhrsStudy(base.Study):
             f"noise per sample: gyro {cfg.gyro_noise_std * cfg.noise_scale:g} rad/s, accelerometer "
             f"{cfg.acc_noise_std * cfg.noise_scale:g} m/s^2, magnetometer {cfg.mag_noise_std * cfg.noise_scale:g} uT; "
             f"gyro bias {tuple(cfg.gyro_bias)} rad/s; rates x{cfg.rate_scale:g}",
-        ]
+        ] + ([SIX_D_NOTE.format(name=cfg.observer)] if "mag" not in registry.get(cfg.observer).needs else [])
 
     def setup(self, observer=None, **overrides):
         raise ValueError(

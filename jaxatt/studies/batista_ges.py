@@ -248,7 +248,7 @@ class BatistaStudy(base.Study):
             errors_fn=self.errors,
             window_start=cfg.window_start,
             hold=cfg.hold,
-            trace_every=10,
+            trace_every=10 if cfg.duration >= 10 * cfg.dt else 1,  # every 0.1 s; every step of a shorter run
             dtype=dtype,
         )
         plot.convergence_figure(
