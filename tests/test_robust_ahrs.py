@@ -318,3 +318,35 @@ def test_check_params_names_a_bad_magnetometer_delay():
     for bad in (float("nan"), 2.0):
         with pytest.raises(ValueError, match="mag_delay"):
             ra.check_params(ra.default_params(mag_delay=bad))
+
+
+def test_a_slower_magnetometer_and_accelerometer_keep_their_time_constants():
+    """A static sensor whose earth-frame references move at t = 1 s (the field turns 20 deg about up, gravity 5 deg
+    about east): with acc and mag read at every 4th step only (NaN between), the estimate right after each reading
+    follows the one with a reading at every step, because a reading takes the correction the steps without one
+    owed (1 - prod(1 - k)). Taken as one step's correction per reading, tau_mag and tau_acc would be 4x longer:
+    12.6 deg apart."""
+    rate, duration, every = 100.0, 40.0, 4
+    n, dt = int(duration * rate), 1.0 / rate
+    t = np.arange(n) * dt
+
+    def rot(axis, a):
+        c, s = np.cos(a), np.sin(a)
+        i, j = [(1, 2), (0, 2), (0, 1)][axis]
+        m = np.eye(3)
+        m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+        return m
+
+    r0 = rot(2, 0.7) @ rot(0, 0.3)  # sensor-to-ENU
+    after = (t >= 1.0)[:, None]
+    m_e = np.where(after, rot(2, 20 * DEG) @ M_ENU, M_ENU)
+    g_e = np.where(after, rot(0, 5 * DEG) @ np.array([0.0, 0.0, G]), np.array([0.0, 0.0, G]))
+    acc, mag = np.einsum("ji,nj->ni", r0, g_e), np.einsum("ji,nj->ni", r0, m_e)
+    gyr = np.zeros((n, 3))
+    p = ra.default_params()
+    dense = np.asarray(run_log(p, gyr, acc, mag, dt).q)
+    read = (np.arange(n) % every == 0)[:, None]
+    sparse = np.asarray(run_log(p, gyr, np.where(read, acc, np.nan), np.where(read, mag, np.nan), dt).q)
+    assert angle_deg(dense[read[:, 0]], sparse[read[:, 0]]).max() < 0.2
+    # both end on the moved references (the dense estimate after 39 s = 4.3 tau_mag)
+    assert angle_deg(dense[-1], sparse[-1]) < 1e-3

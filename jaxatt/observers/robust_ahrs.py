@@ -59,7 +59,12 @@ Start (``init``): TRIAD from the first accelerometer and magnetometer samples (u
 rest detector "not at rest" (it needs ``rest_hold`` s of quiet first).
 
 Missing data: a non-finite (or zero) acc / mag sample gets weight 0 (its gate state is held); a non-finite gyro
-sample is replaced by the gyro low-pass. Padded trials (last sample repeated) need no special care.
+sample is replaced by the gyro low-pass. Padded trials (last sample repeated) need no special care. The time
+constants hold for a sensor slower than the gyro or with gaps (a magnetometer at a quarter of the gyro rate, given
+as NaN rows between its readings): the next present reading takes the step that the steps without one owed,
+1 - prod(1 - k) over them (``State.acc_gain``, ``State.mag_gain``; the tau_acc low-pass and the tau_mag heading
+correction), so a correction per reading does not slow down with the reading rate. With a reading at every step
+this is k itself, bit for bit.
 
 Everything is pure JAX: jit, vmap over trials (padded, masked) and over parameter sets, grad through long scans
 (:func:`jaxatt.fit` learns the parameters from BROAD trials). Shipped tuned parameters: the registry entry
@@ -207,6 +212,9 @@ class State(NamedTuple):
         mag_e: () held magnetic deviation.
         mag_norm_ref: () reference |m| (unit of mag).
         mag_sin_dip_ref: () sine of the reference dip (negative when the field points down).
+        acc_gain: () fraction 1 - prod(1 - k_acc) of the acc low-pass step over the steps since the last present
+            acc reading, this one included (k_acc there when every step has one; see "Missing data").
+        mag_gain: () the same for the heading correction (k_mag).
     """
 
     t: jax.Array
@@ -221,6 +229,8 @@ class State(NamedTuple):
     mag_e: jax.Array
     mag_norm_ref: jax.Array
     mag_sin_dip_ref: jax.Array
+    acc_gain: jax.Array
+    mag_gain: jax.Array
 
 
 class Out(NamedTuple):
@@ -368,12 +378,14 @@ _ROWS = (
     "mag_e",
     "mag_norm_ref",
     "mag_sin_dip_ref",
+    "acc_gain",
+    "mag_gain",
     "w_mag",
     "w_acc",
     "w_rest",
     "psi",
 )
-_N_STATE = 24
+_N_STATE = 26
 #: Anti-windup of the motion-bias integrator: saturation of a step's acc correction (rad) it integrates (far
 #: above its values in steady operation, ~1e-4 rad per step).
 _PHI_SAT = 0.01
@@ -410,7 +422,7 @@ def _finite3(x, y, z):
 
 
 def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
-    """One step. ``s``: the state as a tuple of component arrays (_ROWS[:22]); g, a, m: 3-tuples of arrays (gyro,
+    """One step. ``s``: the state as a tuple of component arrays (_ROWS[:_N_STATE]); g, a, m: 3-tuples of arrays (gyro,
     acc, mag; NaN = missing). Returns the tuple of _ROWS: the new state, then this step's diagnostics. (Tuples of
     components, never one packed array: slicing a packed array turns into pads in the reverse pass, which XLA
     computes very slowly.)"""
@@ -439,6 +451,8 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
         mag_e,
         mref,
         sref,
+        acc_gain,
+        mag_gain,
     ) = s
     gx, gy, gz = g
     ax, ay, az = a
@@ -496,7 +510,10 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     # --- inclination: acc low-passed in the quasi-inertial frame (every valid sample, so that linear accelerations
     # average out), then the rotation that brings the low-passed vector up, applied to the fraction w_acc ---
     aex, aey, aez = _rot_c(q, (ax, ay, az))
-    k1 = c.k_acc * fa
+    # the low-pass step owed since the last present reading: 1 - prod(1 - k_acc) over those steps (k_acc itself,
+    # bit for bit, when every step has a reading), so the time constant holds for a slower or gappy accelerometer
+    acc_gain = acc_gain + c.k_acc * (1.0 - acc_gain)
+    k1 = acc_gain * fa
     l1x, l1y, l1z = l1x + k1 * (aex - l1x), l1y + k1 * (aey - l1y), l1z + k1 * (aez - l1z)
     k2 = c.k_acc_2
     l2x, l2y, l2z = l2x + k2 * (l1x - l2x), l2y + k2 * (l1y - l2y), l2z + k2 * (l1z - l2z)
@@ -523,8 +540,10 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
     mag_e = jnp.where(mag_ok, _hold(mag_e, dn * dn + dd * dd, c.dec_mag), mag_e)
     w_mag = _gate(mag_e, c) * fm
     psi = jnp.arctan2(mex, mey)
-    theta = w_mag * c.k_mag * psi  # |theta| <= pi dt / tau_mag per step
-    kref = w_mag * c.k_mag_ref
+    mag_gain = mag_gain + c.k_mag * (1.0 - mag_gain)  # as acc_gain: the heading step owed since the last reading
+    theta = w_mag * mag_gain * psi  # |theta| <= pi (1 - exp(-gap / tau_mag)), gap = time since the last reading
+    # the reference's time constant likewise, to first order in gap / tau_mag_ref (exact when every step has one)
+    kref = w_mag * c.k_mag_ref * (mag_gain / jnp.where(c.k_mag > 0, c.k_mag, 1.0))
     mref, sref = mref + kref * (mnorm - mref), sref + kref * (sdip - sref)
     qw, qx, qy, qz = so3.quat_multiply_parts(
         (one, zero, zero, 0.5 * theta), qa
@@ -571,6 +590,8 @@ def _core(c: Coeffs, s: tuple, g: tuple, a: tuple, m: tuple):
         mag_e,
         mref,
         sref,
+        acc_gain * (1.0 - fa),
+        mag_gain * (1.0 - fm),
         w_mag,
         w_acc,
         w_rest,
@@ -592,6 +613,8 @@ def _flatten_state(s: State) -> tuple:
         s.mag_e,
         s.mag_norm_ref,
         s.mag_sin_dip_ref,
+        s.acc_gain,
+        s.mag_gain,
     )
 
 
@@ -610,6 +633,8 @@ def _unflatten_state(t, f) -> State:
         mag_e=f[21],
         mag_norm_ref=f[22],
         mag_sin_dip_ref=f[23],
+        acc_gain=f[24],
+        mag_gain=f[25],
     )
 
 
@@ -659,6 +684,8 @@ def _init(p: Params, sample: ImuSample) -> State:
         mag_e=zero,
         mag_norm_ref=mnorm,
         mag_sin_dip_ref=sdip,
+        acc_gain=zero,
+        mag_gain=zero,
     )
 
 
