@@ -57,7 +57,10 @@ Readings chosen here (documented differences, none on BROAD):
   the package's first output); it has no dt and uses ``Params.ts0`` (s, default 0.01) as the sampling time of that
   first update. Set it to the data's sampling time for a bit-for-bit match from the first sample (the tests do).
 * Missing samples: NaN or all-zero acc / mag skip that update (the package skips all-zero vectors); a NaN gyro
-  sample is replaced by the last finite one.
+  sample is replaced by the last finite one. The next reading is processed over the time since the last one
+  (``State.acc_gap`` / ``mag_gap``), so a magnetometer or accelerometer slower than the gyro, given as NaN rows
+  between its readings, runs as the package set up with ``VQF(gyrTs, accTs, magTs)`` and ``updateMag`` at its
+  readings (equal to rounding; a sensor's first reading is processed over ``ts0``, the package's over its Ts).
 * ``smooth`` (default 0 = the exact VQF): a temperature for a differentiable relaxation of the discrete decisions
   (see :func:`_gate`): with smooth > 0, the rest / disturbance / candidate comparisons become sigmoids of
   the normalised margin, the flags become weights in [0, 1], the branches blend. It equals the exact filter for
@@ -268,6 +271,8 @@ class State(NamedTuple):
         mag_norm_dip: (2,) last (filtered) norm and dip.
         last_mag_dis_angle: last heading disagreement (rad).
         gyr_last: (3,) last finite gyro sample (rad/s).
+        acc_gap, mag_gap: time (s) since the last accelerometer / magnetometer reading, up to the previous step
+            (0 when it had one): a reading is processed over this plus the step, the package's accTs / magTs.
     """
 
     t: jax.Array
@@ -300,6 +305,8 @@ class State(NamedTuple):
     mag_norm_dip_lp: Lp
     last_mag_dis_angle: jax.Array
     gyr_last: jax.Array
+    acc_gap: jax.Array
+    mag_gap: jax.Array
 
 
 class Out(NamedTuple):
@@ -788,6 +795,8 @@ def _reset(p: Params, dtype) -> State:
         mag_norm_dip_lp=_lp_new(2, dtype),
         last_mag_dis_angle=z,
         gyr_last=jnp.zeros(3, dtype),
+        acc_gap=z,
+        mag_gap=z,
     )
 
 
@@ -803,14 +812,25 @@ def _inputs(sample, gyr_last, dtype, use_mag: bool):
 
 
 def _update(p: Params, s: State, sample, ts, use_mag: bool):
-    """``VQF::update(gyr, acc[, mag])`` with one sample: (state, acc_ok, mag_ok)."""
+    """``VQF::update(gyr, acc[, mag])`` with one sample: (state, acc_ok, mag_ok).
+
+    A missing acc / mag reading (NaN) skips that sensor's update, as calling only ``updateGyr`` does; the next
+    reading is processed over the time since the last one (``State.acc_gap`` / ``mag_gap`` plus this step), as
+    the package does with ``accTs`` / ``magTs`` for a sensor slower than the gyro. With a reading at every step
+    that time is the step itself, bit for bit."""
     dtype = s.gyr_quat.dtype
     gyr, acc, mag, acc_ok, mag_ok = _inputs(sample, s.gyr_last, dtype, use_mag)
+    acc_ts, mag_ts = s.acc_gap + ts, s.mag_gap + ts
     s = _update_gyr(p, s, gyr, ts)
-    s = _tree_where(acc_ok, _update_acc(p, s, acc, ts), s)
+    s = _tree_where(acc_ok, _update_acc(p, s, acc, acc_ts), s)
     if use_mag:
-        s = _tree_where(mag_ok, _update_mag(p, s, mag, ts), s)
-    return s._replace(gyr_last=gyr), acc_ok, mag_ok
+        s = _tree_where(mag_ok, _update_mag(p, s, mag, mag_ts), s)
+    zero = jnp.zeros_like(acc_ts)
+    return (
+        s._replace(gyr_last=gyr, acc_gap=jnp.where(acc_ok, zero, acc_ts), mag_gap=jnp.where(mag_ok, zero, mag_ts)),
+        acc_ok,
+        mag_ok,
+    )
 
 
 def _out(s: State, use_mag: bool, acc_ok, mag_ok, bias_p0) -> Out:
