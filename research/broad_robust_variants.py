@@ -15,7 +15,8 @@ tuned again. Each variant is off at its default, where it reproduces the shipped
 
 The variant is built from the library's own source (jaxatt/observers/robust_ahrs.py) by exact text replacements,
 which fail loudly when the source has changed. They match the source up to f4eb711: since d0f5047 (the gain
-accumulators of a slower magnetometer) run it against that version, e.g. from a worktree at f4eb711. Prints one line per value (group means and every trial).
+accumulators of a slower magnetometer) run it against that version, e.g. from a worktree at f4eb711. Prints one
+line per value (group means and every trial).
 
 ``--fit STEPS``: instead of the scan, learn the variant's new parameter together with the shipped filter's tuned
 gains (jaxatt.fit on your own observer, float32, Adam lr ``--lr``, cosine), each fold from its own shipped fold

@@ -155,8 +155,9 @@ def test_check_params():
 
 def test_a_gap_in_the_timestamps_costs_the_gyro_integration_not_a_filter_transient():
     """A 1-s gap in a 100-Hz recording: each Butterworth low-pass restarts from its last output when the step
-    jumps (vqf.TS_JUMP). Its state, driven through the 1-s step's coefficients and then the 0.01-s ones again,
-    swung the inclination by ~30 deg for ~20 s. Now the error after the gap stays at the error before it plus what
+    jumps (vqf.GAP_RATIO; carrying its state over to the new coefficients instead gave 7.4 deg). Its state,
+    driven through the 1-s step's coefficients and then the 0.01-s ones again, swung the inclination by ~30 deg
+    for ~20 s. Now the error after the gap stays at the error before it plus what
     the gyro integrates across the gap, and a constant step is untouched (the BROAD tests above)."""
     from jaxatt import so3
 
@@ -169,6 +170,32 @@ def test_a_gap_in_the_timestamps_costs_the_gyro_integration_not_a_filter_transie
     err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(np.asarray(truth.r)[keep]), jnp.asarray(est.rotation))))
     before, after = err[1500:2000].max(), err[2000:3900].max()
     assert after < before + 1.0, (before, after)
+
+
+def test_timestamp_jitter_and_dropped_samples_cost_what_the_gyro_integration_does():
+    """Recordings whose steps vary: each step's low-pass coefficients differ from the last one's, and the state is
+    carried over to them (a restart at every change of more than 50 % took the error to 20-24 deg here). With the
+    timestamps jittered by +-2 ms at 100 Hz, or a fifth of the samples dropped, the error after the first 20 s
+    stays within 0.3 deg of the regular recording's (measured 2.74 deg regular, 2.80 with either)."""
+    from jaxatt import so3
+
+    samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=60.0, dt=0.01, seed=3)
+    t, g, a, m = (np.asarray(x) for x in samples)
+    r_true = np.asarray(truth.r)
+
+    def rms_after_20s(keep, times):
+        est = jaxatt.filter("vqf", g[keep], a[keep], m[keep], t=times)
+        err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true[keep]), jnp.asarray(est.rotation))))
+        return float(np.sqrt(np.mean(err[np.searchsorted(times, 20.0) :] ** 2)))
+
+    rng = np.random.default_rng(0)
+    every = np.ones(len(t), bool)
+    regular = rms_after_20s(every, t)
+    jittered = rms_after_20s(every, t + rng.uniform(-0.002, 0.002, len(t)))
+    kept = rng.random(len(t)) >= 0.2
+    kept[0] = True
+    dropped = rms_after_20s(kept, t[kept])
+    assert jittered < regular + 0.3 and dropped < regular + 0.3, (regular, jittered, dropped)
 
 
 def test_a_slower_magnetometer_or_accelerometer_matches_the_package_run_at_its_rate():

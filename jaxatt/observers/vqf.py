@@ -232,7 +232,8 @@ class Lp(NamedTuple):
     """State of one vector low-pass filter with the package's averaging start (``filterVec``): during the first
     tau seconds the output is the running mean (``n`` samples, ``total`` their sum); then the second-order
     Butterworth filter (state ``z`` (2, N), direct form II transposed, as ``filterStep``) starts from it. ``y``:
-    the last output; ``ts``: the step (s) of the last update (0 before the first)."""
+    the last output; ``ts``: the step (s) of the last update (0 before the first); ``b`` (3,), ``a`` (2,): its
+    coefficients."""
 
     n: jax.Array
     total: jax.Array
@@ -240,12 +241,15 @@ class Lp(NamedTuple):
     ready: jax.Array
     y: jax.Array
     ts: jax.Array
+    b: jax.Array
+    a: jax.Array
 
 
-#: A step whose length differs from the last one's by more than this fraction (a gap in a recording, a change of
-#: rate) restarts each Butterworth low-pass at its last output (:func:`_filter_vec`). The package runs at one fixed
-#: Ts and never meets it; timestamp jitter stays far below it.
-TS_JUMP = 0.5
+#: A step longer than this many times the last one, or shorter than the last one over it, the longer of the two
+#: above a tenth of the filter's tau (a gap in a recording, a change of rate), restarts that Butterworth low-pass
+#: at its last output (:func:`_filter_vec`); smaller changes (timestamp jitter, dropped samples) carry the state
+#: over to the new coefficients. The package runs at one fixed Ts and meets neither.
+GAP_RATIO = 3.0
 
 
 class State(NamedTuple):
@@ -447,6 +451,8 @@ def _lp_new(n_dim, dtype):
         ready=jnp.zeros((), bool),
         y=jnp.zeros(n_dim, dtype),
         ts=jnp.zeros((), dtype),
+        b=jnp.zeros(3, dtype),
+        a=jnp.zeros(2, dtype),
     )
 
 
@@ -455,18 +461,22 @@ def _filter_vec(x, tau, ts, b, a, st: Lp):
     the steady state of that mean (``filterInitialState``). Returns (y, new state).
 
     The package's coefficients are those of one fixed Ts; here each step has its own (b, a) from its dt, and the
-    state ``z`` of one coefficient set is not that of another. With a constant step nothing changes; when the step
-    jumps by more than :data:`TS_JUMP` (a gap of a recording: 0.01 s, then 1 s, then 0.01 s again) the filter
-    restarts from the steady state of its last output (as ``filterInitialState`` does from the mean), instead of
-    the transient that the old state drives through the new coefficients (VQF's inclination off by ~30 deg
-    for ~20 s after a 1-s gap)."""
+    state ``z`` of one coefficient set is not that of another. Before each step the state is carried over to this
+    step's coefficients: its steady state at the last output is exchanged for the new coefficients' one and its
+    deviation from it is kept (``filterAdaptStateForCoeffChange``'s idea); with a constant step the change is
+    exactly zero. Across a gap (0.01 s, then 1 s, then 0.01 s again; :data:`GAP_RATIO`) the deviation, which
+    means something else under coefficients 100 times apart, is dropped: the filter restarts at the steady state
+    of its last output (the old state driven through the new coefficients swung VQF's inclination by ~30 deg for
+    ~20 s). A restart at every change of the step, jitter included, cost 20 deg on a jittered recording."""
     n1 = st.n + 1
     total1 = st.total + x
     mean = total1 / n1
     now_ready = n1 * ts >= tau
     z_init = jnp.stack([mean * (1 - b[0]), mean * (b[2] - a[1])])
-    jump = st.ready & (jnp.abs(ts - st.ts) > TS_JUMP * st.ts)
-    z_prev = jnp.where(jump, jnp.stack([st.y * (1 - b[0]), st.y * (b[2] - a[1])]), st.z)
+    # steady state of the new coefficients minus that of the old, at the last output (0 for equal coefficients)
+    carry = jnp.stack([st.y * (st.b[0] - b[0]), st.y * ((b[2] - a[1]) - (st.b[2] - st.a[1]))])
+    gap = st.ready & ((ts > GAP_RATIO * st.ts) | (GAP_RATIO * ts < st.ts)) & (jnp.maximum(ts, st.ts) > 0.1 * tau)
+    z_prev = jnp.where(gap, jnp.stack([st.y * (1 - b[0]), st.y * (b[2] - a[1])]), st.z + carry)
     y_run = b[0] * x + z_prev[0]
     z_run = jnp.stack([b[1] * x - a[0] * y_run + z_prev[1], b[2] * x - a[1] * y_run])
     y = jnp.where(st.ready, y_run, mean)
@@ -478,6 +488,8 @@ def _filter_vec(x, tau, ts, b, a, st: Lp):
         ready=st.ready | now_ready,
         y=y,
         ts=jnp.asarray(ts, st.ts.dtype) * jnp.ones_like(st.ts),
+        b=jnp.asarray(b, st.b.dtype),
+        a=jnp.asarray(a, st.a.dtype),
     )
     return y, new
 
