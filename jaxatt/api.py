@@ -658,6 +658,9 @@ def filter(
     _warn_implausible(gyr_a, acc_a, mag_a, ts, from_dt=t is None)
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
+    if entry is not None and entry.first_step and not (isinstance(params, dict) and entry.first_step in params):
+        if params is None or isinstance(params, (dict, str)):  # not a Params of the user's: its field is theirs
+            p = p._replace(**{entry.first_step: jnp.asarray(ts[1] - ts[0], dt_)})
     if entry is not None:
         if "acc" in entry.needs and acc_a is None:
             if whole:

@@ -198,6 +198,20 @@ def test_timestamp_jitter_and_dropped_samples_cost_what_the_gyro_integration_doe
     assert jittered < regular + 0.3 and dropped < regular + 0.3, (regular, jittered, dropped)
 
 
+def test_the_front_door_starts_vqf_over_the_recordings_first_step():
+    """``jaxatt.filter("vqf", ...)`` on a 50-Hz recording equals the package's ``VQF(0.02).updateBatch`` from the
+    first sample: the front door sets ``ts0`` to the first step (Entry.first_step). With the default ts0 = 0.01 s
+    the two were up to 1.7e-4 rad apart; a ts0 the caller names is kept."""
+    samples, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=20.0, dt=0.02, seed=5)
+    g, a, m = (np.ascontiguousarray(np.asarray(x, np.float64)) for x in (samples.gyr, samples.acc, samples.mag))
+    ref = package_run(g, a, m, 0.02)["quat9D"]
+    est = jaxatt.filter("vqf", g, a, m, dt=0.02)
+    assert float(est.params.ts0) == 0.02
+    assert qangle(est.quat, ref).max() < 1e-9
+    kept = jaxatt.filter("vqf", g, a, m, dt=0.02, params={"ts0": 0.01})
+    assert float(kept.params.ts0) == 0.01 and qangle(kept.quat, ref).max() > 1e-6
+
+
 def test_a_slower_magnetometer_or_accelerometer_matches_the_package_run_at_its_rate():
     """Readings at 1/n of the gyro rate (NaN rows between) against the package set up for them, ``VQF(gyrTs,
     accTs, magTs)`` with ``updateGyr`` every sample and ``updateAcc`` / ``updateMag`` at the readings: a reading

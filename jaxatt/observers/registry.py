@@ -101,6 +101,9 @@ class Entry(NamedTuple):
         init_reads: the sensors whose first reading ``init`` starts from (its attitude, its references) without a
             ``setup``: on recorded data a missing reading in row 0 of them is replaced by that sensor's first
             present one (:func:`jaxatt.api.start_from_valid`), as for an observer with ``setup``.
+        first_step: the Params field holding the sampling time (s) of ``init``'s update with the first sample (VQF's
+            ``ts0``), or "": :func:`jaxatt.filter` sets it to the recording's first step unless the params given
+            name it.
     """
 
     name: str
@@ -119,6 +122,7 @@ class Entry(NamedTuple):
     check: Optional[Callable[[Any], None]] = None
     recorded: bool = True
     init_reads: Tuple[str, ...] = ()
+    first_step: str = ""
 
     def gain(self, field: str) -> Gain:
         for g in self.gains:

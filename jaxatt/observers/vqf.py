@@ -55,7 +55,8 @@ Readings chosen here (documented differences, none on BROAD):
 * The package computes its coefficients once from a fixed sampling time; here every step computes them from its
   own dt (equal for a constant dt). ``init`` performs the package's update with the first sample (so estimate 0 is
   the package's first output); it has no dt and uses ``Params.ts0`` (s, default 0.01) as the sampling time of that
-  first update. Set it to the data's sampling time for a bit-for-bit match from the first sample (the tests do).
+  first update. Set it to the data's sampling time for a bit-for-bit match from the first sample (the tests do;
+  :func:`jaxatt.filter` sets it to the recording's first step unless the params given name it).
 * Missing samples: NaN or all-zero acc / mag skip that update (the package skips all-zero vectors); a NaN gyro
   sample is replaced by the last finite one. The next reading is processed over the time since the last one
   (``State.acc_gap`` / ``mag_gap``), so a magnetometer or accelerometer slower than the gyro, given as NaN rows
@@ -980,6 +981,7 @@ ENTRIES = (
         hold="next",
         module="vqf",
         check=check_params,
+        first_step="ts0",
     ),
     registry.Entry(
         name="vqf-6d",
@@ -994,5 +996,6 @@ ENTRIES = (
         needs=("acc",),
         module="vqf",
         check=check_params,
+        first_step="ts0",
     ),
 )
