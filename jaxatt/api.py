@@ -389,6 +389,33 @@ def _check_recorded_gains(path, params, default, name: str) -> None:
     )
 
 
+def scale_field_unit_gains(entry, given, p, mag_norm: float):
+    """``p`` with the entry's magnetometer-unit gains (:attr:`~jaxatt.observers.registry.Entry.field_unit_gains`)
+    scaled by (mag_norm / |m_ref|)^2 when they come from the defaults (``given``: the params the caller passed, None,
+    a dict or a gains-file path; a dict naming a field keeps it, a Params of the caller's is theirs)."""
+    if entry is None or not entry.field_unit_gains or not np.isfinite(mag_norm) or mag_norm <= 0:
+        return p
+    if not (given is None or isinstance(given, (dict, str))):
+        return p
+    ref = float(np.linalg.norm(np.asarray(entry.default_params().mag_ref_nav, float)))
+    k = (mag_norm / ref) ** 2
+    named = set(given) if isinstance(given, dict) else set()
+    if isinstance(given, str):  # the gains a file holds are the caller's
+        from .fitting import gainsfile
+
+        named = set(gainsfile.read(given).get("gains", {}))
+    return p._replace(**{f: getattr(p, f) * k for f in entry.field_unit_gains if f not in named})
+
+
+def _first_field_norm(mag) -> float:
+    """|m| of the first complete magnetometer reading (NaN when there is none)."""
+    if mag is None:
+        return float("nan")
+    m = np.asarray(mag, float)
+    ok = np.all(np.isfinite(m), axis=-1) & np.any(m != 0, axis=-1)
+    return float(np.linalg.norm(m[np.argmax(ok)])) if ok.any() else float("nan")
+
+
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
     """(observer, params, entry or None, name) for a registered name / :class:`~jaxatt.observers.registry.Entry`
     (set up for recorded data, params None -> its shipped or default gains) or a user's :class:`Observer`
@@ -661,6 +688,7 @@ def filter(
     if entry is not None and entry.first_step and not (isinstance(params, dict) and entry.first_step in params):
         if params is None or isinstance(params, (dict, str)):  # not a Params of the user's: its field is theirs
             p = p._replace(**{entry.first_step: jnp.asarray(ts[1] - ts[0], dt_)})
+    p = scale_field_unit_gains(entry, params, p, _first_field_norm(mag_a))
     if entry is not None:
         if "acc" in entry.needs and acc_a is None:
             if whole:
@@ -873,6 +901,8 @@ def broad_score(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     trials = trials_start_from_valid(entry, trials)
+    norms = [_first_field_norm(tr.samples.mag) for tr in trials]
+    p = scale_field_unit_gains(entry, params, p, float(np.nanmedian(norms)) if np.isfinite(norms).any() else np.nan)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

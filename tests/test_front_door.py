@@ -350,6 +350,31 @@ def test_registered_observers_through_the_front_door(name, quiet_log):
         np.testing.assert_allclose(ned.rotation[-1], c @ est.rotation[-1], atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "name",
+    [n for n in jaxatt.observers.registry.names(recorded=True) if jaxatt.observers.registry.get(n).field_unit_gains],
+)
+def test_default_noise_settings_hold_in_any_magnetometer_unit(name, quiet_log, trials):
+    """The observers whose defaults hold magnetometer covariances (mekf: r_mag; the NLIO family: r_mag, p0_mag)
+    give the same estimate for a field in uT, gauss or nT: the front door scales those defaults to the recording's
+    field (Entry.field_unit_gains). Before, the MEKF's error went from 0.49 deg in uT to 70.7 deg in nT. A field
+    the caller names keeps its value; broad_score scales as filter does."""
+    samples, _ = quiet_log
+    g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
+    ut = jaxatt.filter(name, g, a, m, dt=0.01)
+    for factor in (0.01, 1000.0):  # gauss, nT
+        other = jaxatt.filter(name, g, a, m * factor, dt=0.01)
+        assert np.abs(other.quat - ut.quat).max() < 1e-9, (name, factor)
+    r_mag = 2.0 * np.eye(3)
+    named = jaxatt.filter(name, g, a, m * 1000.0, dt=0.01, params={"r_mag": r_mag})
+    np.testing.assert_array_equal(np.asarray(named.params.r_mag), r_mag)
+    if name == "mekf":
+        scaled = [t._replace(samples=t.samples._replace(mag=t.samples.mag * 1000.0)) for t in trials]
+        a_ut, a_nt = (jaxatt.broad_score(name, None, tr).groups for tr in (trials, scaled))
+        for grp in a_ut:
+            assert a_nt[grp].total_rmse_deg == pytest.approx(a_ut[grp].total_rmse_deg, rel=1e-9)
+
+
 @pytest.mark.parametrize("name", ["robust", "mahony", "madgwick"])
 def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_log):
     """Row 0 of mag (a blank cell, a slower magnetometer) missing: the filters that start from the first sample

@@ -298,7 +298,8 @@ def _setup_recorded(p: Params, sample) -> Params:
 
 def _recorded_defaults(dtype=None) -> Params:
     """Untuned defaults in recorded-data units: sigma_gyro = 0.002 rad/s, bias random walk 1e-5 rad/s/sqrt(s),
-    R_acc = (1 m/s^2)^2 I, R_mag = (3 unit)^2 I, P0 = blkdiag(1e-4 I, 1e-5 I)."""
+    R_acc = (1 m/s^2)^2 I, R_mag = (3 unit)^2 I for a 43.5-unit field (the front door scales it to the recording's
+    field: 6.9 % of its norm; ``Entry.field_unit_gains``), P0 = blkdiag(1e-4 I, 1e-5 I)."""
     return default_params(
         (0.0, 0.0, 9.81),
         (0.0, 17.0, -40.0),
@@ -332,5 +333,6 @@ ENTRIES = (
         hold="next",
         module="mekf",
         check=check_params,
+        field_unit_gains=("r_mag",),
     ),
 )

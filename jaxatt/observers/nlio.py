@@ -552,7 +552,8 @@ def _setup_recorded(p: Params, sample) -> Params:
 
 def _recorded_defaults(dtype=None) -> Params:
     """Untuned defaults in recorded-data units (rad/s, m/s^2, the data's field unit): Kp = 0.3 I, kv = 0.02,
-    K1 = I, K2 = 0.3 I, sigma_gyro = 0.002 rad/s, R_acc = P0_acc = 0.25 I, R_mag = P0_mag = I, L_b = 0.02 rad/s."""
+    K1 = I, K2 = 0.3 I, sigma_gyro = 0.002 rad/s, R_acc = P0_acc = 0.25 I, R_mag = P0_mag = I for a 43.5-unit field
+    (scaled to the recording's field by the front door: ``Entry.field_unit_gains``), L_b = 0.02 rad/s."""
     return default_params(
         (0.0, 0.0, 9.81),
         (0.0, 17.0, -40.0),
@@ -590,6 +591,7 @@ _COMMON: Dict[str, Any] = dict(
     hold="next",
     module="nlio",
     check=check_params,
+    field_unit_gains=("r_mag", "p0_mag"),
 )
 
 ENTRIES = (

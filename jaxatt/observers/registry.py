@@ -104,6 +104,10 @@ class Entry(NamedTuple):
         first_step: the Params field holding the sampling time (s) of ``init``'s update with the first sample (VQF's
             ``ts0``), or "": :func:`jaxatt.filter` sets it to the recording's first step unless the params given
             name it.
+        field_unit_gains: gains in the magnetometer's unit squared (noise covariances). When they come from the
+            defaults, :func:`jaxatt.filter` and :func:`jaxatt.broad_score` scale them by (|m| / |m_ref|)^2, |m| the
+            recording's first field reading and |m_ref| that of the defaults' ``mag_ref_nav``: the defaults then
+            mean the same in uT, nT or gauss.
     """
 
     name: str
@@ -123,6 +127,7 @@ class Entry(NamedTuple):
     recorded: bool = True
     init_reads: Tuple[str, ...] = ()
     first_step: str = ""
+    field_unit_gains: Tuple[str, ...] = ()
 
     def gain(self, field: str) -> Gain:
         for g in self.gains:
