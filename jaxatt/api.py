@@ -438,6 +438,14 @@ def _first_field_norm(mag) -> float:
     return float(np.linalg.norm(m[np.argmax(ok)])) if ok.any() else float("nan")
 
 
+def scale_field_unit_gains_for_trials(entry, given, p, trials):
+    """:func:`scale_field_unit_gains` for a batch of trials: to the median of their first field readings' norms."""
+    norms = np.array([_first_field_norm(tr.samples.mag) for tr in trials], float)
+    return scale_field_unit_gains(
+        entry, given, p, float(np.median(norms[np.isfinite(norms)])) if np.isfinite(norms).any() else np.nan
+    )
+
+
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
     """(observer, params, entry or None, name) for a registered name / :class:`~jaxatt.observers.registry.Entry`
     (set up for recorded data, params None -> its shipped or default gains) or a user's :class:`Observer`
@@ -924,8 +932,7 @@ def broad_score(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     trials = trials_start_from_valid(entry, trials)
-    norms = [_first_field_norm(tr.samples.mag) for tr in trials]
-    p = scale_field_unit_gains(entry, params, p, float(np.nanmedian(norms)) if np.isfinite(norms).any() else np.nan)
+    p = scale_field_unit_gains_for_trials(entry, params, p, trials)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

@@ -105,9 +105,9 @@ class Entry(NamedTuple):
             ``ts0``), or "": :func:`jaxatt.filter` sets it to the recording's first step unless the params given
             name it.
         field_unit_gains: gains in the magnetometer's unit squared (noise covariances). When they come from the
-            defaults, :func:`jaxatt.filter` and :func:`jaxatt.broad_score` scale them by (|m| / |m_ref|)^2, |m| the
-            recording's first field reading and |m_ref| that of the defaults' ``mag_ref_nav``: the defaults then
-            mean the same in uT, nT or gauss.
+            defaults, :func:`jaxatt.filter`, :func:`jaxatt.broad_score` and :func:`jaxatt.fit` (its start) scale
+            them by (|m| / |m_ref|)^2: |m| the recording's first field reading (the median over trials), |m_ref|
+            that of the defaults' ``mag_ref_nav``. The defaults then mean the same in uT, nT or gauss.
     """
 
     name: str
