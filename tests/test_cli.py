@@ -69,6 +69,18 @@ def test_observer_specific_flags_are_checked(capsys):
     )
 
 
+def test_a_step_beyond_rk4s_stability_is_refused_before_computing(tmp_path, capsys):
+    """batista-ges at dt = 0.03 s: Table 1's alpha1 = 100 1/s gives alpha1 dt = 3 > 2.78, where RK4 diverges (it
+    went non-finite at t = 18.6 s). Refused with one line naming dt, alpha1 and the longest step that works, before
+    anything runs (no JSON written)."""
+    out = tmp_path / "ges.json"
+    argv = ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "30", "--json", str(out)]
+    assert cli.main([*argv, "--dt", "0.03"]) == 2
+    err = capsys.readouterr().err
+    assert "dt = 0.03 s is too long for alpha1 = 100" in err and "dt <= 0.0278" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
 def test_simulate_complementary_constant_reference_does_not_converge_rotating_does(tmp_path):
     res = {}
     for scen in ("constant", "rotating"):

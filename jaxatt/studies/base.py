@@ -311,6 +311,9 @@ class Study(abc.ABC):
     def check_params(self, params) -> None:
         pass
 
+    def check_step(self, cfg, params) -> None:
+        """ValueError when ``cfg.dt`` is too long for these gains (an explicit integrator's stability limit)."""
+
     # ---- reporting -----------------------------------------------------------------------------------
     def trace(self, cfg, plotting: bool) -> Tuple[int, Optional[Callable]]:
         """(trace_every, trace_fn) of the Monte Carlo (0: no traces)."""
@@ -491,6 +494,7 @@ def reproduce(
     obs = dict(observers) if observers is not None else study.observers(cfg)
     for _, (_, p) in obs.items():
         study.check_params(p)
+        study.check_step(cfg, p)
     dtype_name = str(np.dtype(dtype if dtype is not None else jax.numpy.result_type(float)))
     trace_every, trace_fn = study.trace(cfg, bool(plot_path))
     spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every)

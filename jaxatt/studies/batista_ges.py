@@ -196,6 +196,13 @@ def comparable(cfg) -> "str | None":
     return "; ".join(diff) if diff else None
 
 
+#: The rate gain whose product with dt RK4 must keep below :data:`RK4_REAL_LIMIT` in this study ("alpha1": x1~'s
+#: decay rate in eq. (15); the SO3 study's alpha1 multiplies |I_m|^2 and is not checked).
+RK4_RATE_GAIN = "alpha1"
+#: RK4's stability limit on the negative real axis (h lambda > -2.785), rounded down.
+RK4_REAL_LIMIT = 2.78
+
+
 class BatistaStudy(base.Study):
     """Section IV / 4 of either Batista et al. (2019) paper; ``mod`` is the study module (this one or
     :mod:`jaxatt.studies.batista_so3`), whose functions define the set-up."""
@@ -232,6 +239,19 @@ class BatistaStudy(base.Study):
 
     def check_params(self, p):
         self.mod.check_params(p)
+
+    def check_step(self, cfg, p):
+        """RK4 on the Earth-rate block's x1~' = -alpha1 x1~ is stable for alpha1 dt < 2.78 (its real-axis limit,
+        2.785): a longer step diverges (dt = 0.03 s with Table 1's alpha1 = 100 1/s went non-finite at 18.6 s)."""
+        a1 = getattr(p, "alpha1", None)
+        if a1 is None or getattr(self.mod, "RK4_RATE_GAIN", None) != "alpha1":
+            return
+        a_max = float(np.max(np.asarray(a1, float)))
+        if a_max * cfg.dt >= RK4_REAL_LIMIT:
+            raise ValueError(
+                f"dt = {cfg.dt:g} s is too long for alpha1 = {a_max:g} 1/s: RK4 is stable for alpha1 dt < "
+                f"{RK4_REAL_LIMIT} (here {a_max * cfg.dt:.3g}); use dt <= {RK4_REAL_LIMIT / a_max:.4g} s"
+            )
 
     def plot(self, cfg, payload, results, path, dtype=None):
         """The paper's convergence figure (run 0, every 0.1 s)."""
