@@ -81,6 +81,20 @@ def test_a_step_beyond_rk4s_stability_is_refused_before_computing(tmp_path, caps
     assert not out.exists()
 
 
+def test_a_run_still_in_its_transient_says_so(tmp_path, capsys):
+    """batista-ges's transient lasts far beyond 10 s (the paper's window starts at 2400 s): the window's mean angle
+    error is a transient's (~168 deg), and the CLI's first note and the JSON's notes say the observer has not
+    settled, naming the window, instead of reporting it silently as a steady state."""
+    out = tmp_path / "ges.json"
+    argv = ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "10", "--window-start", "5"]
+    assert cli.main([*argv, "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    d = json.loads(out.read_text())
+    assert d["metrics"]["mean_angle_error_deg"]["mean"] > 20.0
+    assert d["notes"][0].startswith("batista-ges has not settled") and "t >= 5 s" in d["notes"][0]
+    assert "batista-ges has not settled" in printed
+
+
 def test_simulate_complementary_constant_reference_does_not_converge_rotating_does(tmp_path):
     res = {}
     for scen in ("constant", "rotating"):

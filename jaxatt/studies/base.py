@@ -587,6 +587,7 @@ def reproduce(
         if not res.complete:
             break
     payload["timing"] = {"wall_s": time.perf_counter() - t_all, "runs": runs, "steps_per_run": n_steps}
+    payload["notes"] = unsettled_notes(results, study.window_start(cfg)) + payload["notes"]
     study.add_results(cfg, payload, results)
     _finish(payload, complete=complete and len(payload["observers"]) == len(obs))
     if len(obs) == 1:
@@ -624,6 +625,27 @@ def reproduce(
     if runs_file(json_path) and not payload["complete"]:
         print(f"finished runs saved in {runs_file(json_path)}: rerun with --resume to finish")
     return payload
+
+
+#: Mean angle error (deg) over the steady-state window above which a Monte Carlo says its observer has not settled:
+#: far above any converged number of the studies (< 1 deg), so only a run still in its transient crosses it.
+UNSETTLED_DEG = 20.0
+
+
+def unsettled_notes(results: dict, window_start: float) -> List[str]:
+    """One note per observer whose mean angle error over the steady-state window exceeds :data:`UNSETTLED_DEG`:
+    its "steady-state" numbers are a transient (e.g. batista-ges at latitude -38.7 deg with the default field:
+    168.7 deg over 2400-3600 s, 0.5 deg after 9000 s, since its gains shrink with |I_omegaE x I_m|)."""
+    notes = []
+    for label, res in results.items():
+        err = np.asarray(res.per_run.get("mean_angle_error_deg", []), float)
+        if err.size and np.isfinite(err).all() and float(np.mean(err)) > UNSETTLED_DEG:
+            notes.append(
+                f"{label} has not settled: its mean angle error over the window t >= {window_start:g} s is "
+                f"{float(np.mean(err)):.1f} deg. Its settling time depends on the set-up (gains, latitude, field, "
+                "trajectory): lengthen --duration and --window-start before reading these as steady-state numbers"
+            )
+    return notes
 
 
 def runs_file(json_path) -> Optional[str]:
