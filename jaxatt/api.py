@@ -370,28 +370,6 @@ def _run_length(n: int) -> int:
     return 1 + engine.BLOCK * _per_octave(-(-(n - 1) // engine.BLOCK))
 
 
-#: Share of the samples above which a magnetic gate shut for a recording is warned about (:func:`filter`).
-GATE_SHUT_WARNING = 0.5
-
-
-def _warn_gate_mostly_shut(name: str, params, outputs: Dict[str, np.ndarray]) -> None:
-    """Warn when a filter with a low-pass before its magnetic gate (the robust AHRS's ``tau_mag_gate``), run without
-    it, rejected the magnetometer in most samples: a disturbed place, or a magnetometer noisier than the gate's
-    thresholds (2 uT of noise on a 45-uT field shuts the shipped gate in 97 % of the samples)."""
-    shut = outputs.get("mag_disturbed")
-    tau = getattr(params, "tau_mag_gate", None)
-    if shut is None or tau is None or float(np.asarray(tau)) > 0 or len(shut) < 2:
-        return
-    frac = float(np.mean(shut[1:]))
-    if frac > GATE_SHUT_WARNING:
-        warnings.warn(
-            f"{name}: the magnetometer was rejected as disturbed in {100 * frac:.0f} % of the samples (heading from "
-            "the gyro alone there). If the field is not disturbed but the magnetometer is noisy, low-pass what the "
-            "gate sees: params={'tau_mag_gate': 0.1} (s)",
-            stacklevel=3,
-        )
-
-
 def _check_recorded_gains(path, params, default, name: str) -> None:
     """One line unless the params read from a gains file have the fields and shapes of ``name``'s params on
     recorded data (a study's gains, e.g. the complementary observer tuned on its simulated vector measurements,
@@ -833,7 +811,9 @@ def filter(
             f"{'has' if len(nonfinite) == 1 else 'have'} non-finite values",
             stacklevel=2,
         )
-    _warn_gate_mostly_shut(name, p, outputs)
+    advice = entry.advise(p, outputs) if entry is not None and entry.advise is not None else None
+    if advice:
+        warnings.warn(f"{name}: {advice}", stacklevel=2)
     # the sample times, exact (float32 rounds Unix times to 128 s)
     if "t" in outputs and outputs["t"].shape == ts.shape:
         outputs["t"] = ts
