@@ -1011,6 +1011,7 @@ def _fit_study(
             )
         p0 = sched.refine(p0, times, fields)
     st.check_params(p0)
+    st.check_step(s.config, p0)  # an explicit integrator's stability limit for these gains at this dt
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     (ss, se), (ts, te) = s.loss_windows["steady"], s.loss_windows["transient"]
     spec = losses.loss_spec(
