@@ -389,22 +389,33 @@ def _check_recorded_gains(path, params, default, name: str) -> None:
     )
 
 
-def scale_field_unit_gains(entry, given, p, mag_norm: float):
-    """``p`` with the entry's magnetometer-unit gains (:attr:`~jaxatt.observers.registry.Entry.field_unit_gains`)
-    scaled by (mag_norm / |m_ref|)^2 when they come from the defaults (``given``: the params the caller passed, None,
-    a dict or a gains-file path; a dict naming a field keeps it, a Params of the caller's is theirs)."""
-    if entry is None or not entry.field_unit_gains or not np.isfinite(mag_norm) or mag_norm <= 0:
+def recording_defaults(entry, given, p, *, first_step: float, field_norm: float):
+    """``p`` with the entry's data-dependent defaults set from the recording, where they come from the defaults
+    (``given``: the params the caller passed, None, a dict or a gains-file path; a field the dict or file names is
+    kept, and a Params of the caller's own is theirs, unchanged):
+
+    * :attr:`~jaxatt.observers.registry.Entry.first_step`: that field <- ``first_step`` (s, the recording's first
+      sampling time; VQF's ``ts0``);
+    * :attr:`~jaxatt.observers.registry.Entry.field_unit_gains` (covariances in the magnetometer's unit squared)
+      scaled by (``field_norm`` / |default mag_ref_nav|)^2, ``field_norm`` being |m| of the first field reading in
+      the recording's unit.
+
+    A NaN / non-positive ``first_step`` or ``field_norm`` (no such reading) leaves that default alone."""
+    if entry is None or not (given is None or isinstance(given, (dict, str))):
         return p
-    if not (given is None or isinstance(given, (dict, str))):
-        return p
-    ref = float(np.linalg.norm(np.asarray(entry.default_params().mag_ref_nav, float)))
-    k = (mag_norm / ref) ** 2
     named = set(given) if isinstance(given, dict) else set()
     if isinstance(given, str):  # the gains a file holds are the caller's
         from .fitting import gainsfile
 
         named = set(gainsfile.read(given).get("gains", {}))
-    return p._replace(**{f: getattr(p, f) * k for f in entry.field_unit_gains if f not in named})
+    new = {}
+    if entry.first_step and entry.first_step not in named and np.isfinite(first_step) and first_step > 0:
+        new[entry.first_step] = jnp.asarray(first_step, jnp.result_type(getattr(p, entry.first_step)))
+    if entry.field_unit_gains and np.isfinite(field_norm) and field_norm > 0:
+        ref = float(np.linalg.norm(np.asarray(entry.default_params().mag_ref_nav, float)))
+        k = (field_norm / ref) ** 2
+        new.update({f: getattr(p, f) * k for f in entry.field_unit_gains if f not in named})
+    return p._replace(**new) if new else p
 
 
 def _first_field_norm(mag) -> float:
@@ -416,12 +427,17 @@ def _first_field_norm(mag) -> float:
     return float(np.linalg.norm(m[np.argmax(ok)])) if ok.any() else float("nan")
 
 
-def scale_field_unit_gains_for_trials(entry, given, p, trials):
-    """:func:`scale_field_unit_gains` for a batch of trials: to the median of their first field readings' norms."""
-    norms = np.array([_first_field_norm(tr.samples.mag) for tr in trials], float)
-    return scale_field_unit_gains(
-        entry, given, p, float(np.median(norms[np.isfinite(norms)])) if np.isfinite(norms).any() else np.nan
-    )
+def _median_finite(x) -> float:
+    x = np.asarray(x, float)
+    return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
+
+
+def recording_defaults_for_trials(entry, given, p, trials):
+    """:func:`recording_defaults` for a batch of trials sharing one params: the median over the trials of their
+    first step (s) and of their first field readings' norms."""
+    steps = [float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])) for tr in trials]
+    norms = [_first_field_norm(tr.samples.mag) for tr in trials]
+    return recording_defaults(entry, given, p, first_step=_median_finite(steps), field_norm=_median_finite(norms))
 
 
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):
@@ -693,10 +709,7 @@ def filter(
     _warn_implausible(gyr_a, acc_a, mag_a, ts, from_dt=t is None)
     dt_ = compute_dtype(gyr_a, acc_a, mag_a, dtype=dtype)
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
-    if entry is not None and entry.first_step and not (isinstance(params, dict) and entry.first_step in params):
-        if params is None or isinstance(params, (dict, str)):  # not a Params of the user's: its field is theirs
-            p = p._replace(**{entry.first_step: jnp.asarray(ts[1] - ts[0], dt_)})
-    p = scale_field_unit_gains(entry, params, p, _first_field_norm(mag_a))
+    p = recording_defaults(entry, params, p, first_step=float(ts[1] - ts[0]), field_norm=_first_field_norm(mag_a))
     if entry is not None:
         if "acc" in entry.needs and acc_a is None:
             if whole:
@@ -912,7 +925,7 @@ def broad_score(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     trials = trials_start_from_valid(entry, trials)
-    p = scale_field_unit_gains_for_trials(entry, params, p, trials)
+    p = recording_defaults_for_trials(entry, params, p, trials)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))

@@ -213,6 +213,14 @@ def test_the_front_door_starts_vqf_over_the_recordings_first_step():
     assert qangle(est.quat, ref).max() < 1e-9
     kept = jaxatt.filter("vqf", g, a, m, dt=0.02, params={"ts0": 0.01})
     assert float(kept.params.ts0) == 0.01 and qangle(kept.quat, ref).max() > 1e-6
+    # broad_score and fit (one params for a batch of trials) take the median of the trials' first steps
+    e = jaxatt.observers.registry.get("vqf")
+    trial = jaxatt.data.broad.Trial("t", samples, np.zeros((len(g), 4)), np.ones(len(g), bool), 50.0)
+    at_100 = trial._replace(samples=samples._replace(t=np.asarray(samples.t) / 2))
+    p = jaxatt.api.recording_defaults_for_trials(e, None, e.default_params(), [trial, trial, at_100])
+    assert float(p.ts0) == pytest.approx(0.02, rel=1e-12)
+    p = jaxatt.api.recording_defaults_for_trials(e, {"ts0": 0.01}, e.default_params(), [trial])
+    assert float(p.ts0) == 0.01
 
 
 def test_a_slower_magnetometer_or_accelerometer_matches_the_package_run_at_its_rate():

@@ -835,8 +835,8 @@ def _fit(
         check_own_estimate,
         check_own_observer,
         compute_dtype,
+        recording_defaults_for_trials,
         resolve_observer,
-        scale_field_unit_gains_for_trials,
         trial_arrays,
         trials_start_from_valid,
     )
@@ -854,7 +854,7 @@ def _fit(
     val_trials = B.check_trials(val_list, "val", need_scored=True) if val_list else []
     dt_ = compute_dtype(*trial_arrays([*trials, *val_trials]), dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
-    p0 = scale_field_unit_gains_for_trials(entry, params, p0, trials)
+    p0 = recording_defaults_for_trials(entry, params, p0, trials)
     trials = trials_start_from_valid(entry, trials)
     val_trials = trials_start_from_valid(entry, val_trials)
     p0 = jax.tree_util.tree_map(

@@ -102,8 +102,9 @@ class Entry(NamedTuple):
             ``setup``: on recorded data a missing reading in row 0 of them is replaced by that sensor's first
             present one (:func:`jaxatt.api.start_from_valid`), as for an observer with ``setup``.
         first_step: the Params field holding the sampling time (s) of ``init``'s update with the first sample (VQF's
-            ``ts0``), or "": :func:`jaxatt.filter` sets it to the recording's first step unless the params given
-            name it.
+            ``ts0``), or "": :func:`jaxatt.filter`, :func:`jaxatt.broad_score` and :func:`jaxatt.fit` set it to the
+            recording's first step (the median over trials) unless the params given name it
+            (:func:`jaxatt.api.recording_defaults`, as for ``field_unit_gains``).
         field_unit_gains: gains in the magnetometer's unit squared (noise covariances). When they come from the
             defaults, :func:`jaxatt.filter`, :func:`jaxatt.broad_score` and :func:`jaxatt.fit` (its start) scale
             them by (|m| / |m_ref|)^2: |m| the recording's first field reading (the median over trials), |m_ref|
