@@ -380,8 +380,8 @@ def run_jaxatt_oof(data_dir, trials, name="robust", *, retrain=False, steps=40, 
             raise SystemExit(f"{path} was tuned on {_train_trials(payload)}, not on fold {k} = {train}")
         fold = {"fold": k, "train": train, "test": [tr.name for tr in test], "gains": str(path)}
         if test:
-            p = gainsfile.read_params(path, name, dtype=jnp.float64)
-            res = jaxatt.broad_score(name, p, test)
+            p = str(path)  # as a user passes it: the data-dependent defaults (VQF's ts0) follow the trials
+            res = jaxatt.broad_score(name, p, test, dtype="float64")
             wall += res.wall_s
             warm += jaxatt.broad_score(name, p, test).wall_s
             for n, sc in res.trials.items():
