@@ -500,9 +500,10 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
 
 
 def check_own_observer(observer: Observer, params, entry, dtype, hold: str, acc: bool = True, mag: bool = True):
-    """For an observer written by a user (``entry`` None): ValueError (one line) unless it keeps the engine's
-    contract (:func:`jaxatt.engine.check_observer`, shapes only), checked on a sample with the given sensors."""
-    if entry is not None:
+    """For an observer written by a user (``entry`` None, or one they registered): ValueError (one line) unless it
+    keeps the engine's contract (:func:`jaxatt.engine.check_observer`, shapes only), checked on a sample with the
+    given sensors."""
+    if entry is not None and registry.builtin(entry):
         return
     z = jnp.zeros((3,), dtype)
     sample0 = ImuSample(jnp.zeros((), dtype), z, z if acc else None, z if mag else None)
@@ -514,11 +515,11 @@ CHECK_SAMPLES = 200
 
 
 def check_own_estimate(observer: Observer, params, entry, samples: ImuSample, dt: float, dtype, hold: str) -> None:
-    """For an observer written by a user (``entry`` None): ValueError (one line) unless its estimate is a rotation
-    (unit ``q``, or ``r`` a rotation matrix, to 1e-3) over the first :data:`CHECK_SAMPLES` ``samples`` (sample
-    period ``dt`` s), as :func:`filter` requires: the batch runs (:func:`monte_carlo`, :func:`broad_score`,
-    :func:`jaxatt.fit`) would otherwise score a non-rotation silently."""
-    if entry is not None:
+    """For an observer written by a user (``entry`` None, or one they registered): ValueError (one line) unless its
+    estimate is a rotation (unit ``q``, or ``r`` a rotation matrix, to 1e-3) over the first :data:`CHECK_SAMPLES`
+    ``samples`` (sample period ``dt`` s), as :func:`filter` requires: the batch runs (:func:`monte_carlo`,
+    :func:`broad_score`, :func:`jaxatt.fit`) would otherwise score a non-rotation silently."""
+    if entry is not None and registry.builtin(entry):
         return
     n = min(CHECK_SAMPLES, int(np.shape(samples.gyr)[0]))
     cut = lambda a: None if a is None else np.asarray(a)[:n]  # noqa: E731
@@ -802,7 +803,7 @@ def filter(
     off = non_unit_row(q)  # | |q| - 1 | > logs.UNIT_TOLERANCE
     if off is not None:
         k = off[0]
-        if entry is not None:  # a registered observer normalises its estimate: this is overflow, not a bug of step
+        if entry is not None and registry.builtin(entry):  # jaxatt's observers normalise: overflow, not a bug of step
             raise FloatingPointError(
                 f"{name}: the estimate at sample {k} (t = {ts[k]:.6g} s) is not a unit quaternion (norm "
                 f"{off[1]:.6g}): the filter overflowed; check the inputs (units) and gains"

@@ -18,6 +18,7 @@ from broad_data import DATA, need_data
 import jaxatt
 from jaxatt import engine, frames, montecarlo, so3
 from jaxatt.data import broad
+from jaxatt.observers import registry
 from jaxatt.types import ImuSample, Observer
 
 
@@ -1129,3 +1130,80 @@ def test_a_6d_filter_s_monte_carlo_says_its_heading_is_not_observable():
     ahrs = studies.get("ahrs")
     assert any("compare std_roll and std_pitch" in n for n in ahrs.notes(ahrs.config(observer="vqf-6d")))
     assert not any("not observable" in n for n in ahrs.notes(ahrs.config(observer="vqf")))
+
+
+def _my_entry(name, step=my_step, **kw):
+    """The user's observer registered under ``name`` (as docs/concepts.md shows)."""
+    gains = (registry.Gain("kp", "1/s", "proportional gain"), registry.Gain("ki", "1/s^2", "integral gain"))
+    return registry.Entry(
+        name, "mine", "-", lambda: Observer(my_init, step, name),
+        lambda dtype=None: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), MY_PARAMS), gains, **kw,
+    )  # fmt: skip
+
+
+def test_a_registered_users_observer_is_checked_as_one_passed_directly():
+    """An observer a user registers goes through the checks of one passed as an Observer (before, only unregistered
+    ones were checked): a float32 q from float64 input is warned about, a non-unit q is refused naming the fix (not
+    called an overflow), and broad_score refuses it before the batch run instead of scoring it."""
+    samples, _ = _short_log()
+
+    def narrow_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        return new, out._replace(q=out.q.astype(jnp.float32))
+
+    def double_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        return new, out._replace(q=2 * out.q)
+
+    try:
+        registry.register(_my_entry("_narrow", narrow_step))
+        registry.register(_my_entry("_double", double_step))
+        with pytest.warns(UserWarning, match="output field q of step is float32"):
+            jaxatt.filter("_narrow", samples.gyr, samples.acc, samples.mag, dt=0.01)
+        with pytest.raises(ValueError, match=r"not a unit quaternion .*\(normalise it in step\)"):
+            jaxatt.filter("_double", samples.gyr, samples.acc, samples.mag, dt=0.01)
+        trial = broad.Trial(
+            "sim", samples, np.asarray(so3.matrix_to_quat(_short_log()[1].r)), np.ones(len(samples.t), bool), 100.0
+        )
+        with pytest.raises(ValueError, match="not a unit quaternion .* before the batch run"):
+            jaxatt.broad_score("_double", None, [trial])
+    finally:
+        registry._EXTRA.pop("_narrow", None)
+        registry._EXTRA.pop("_double", None)
+
+
+@pytest.mark.parametrize(
+    "change, error, match",
+    [
+        ({"gains": (registry.Gain("kq", "1/s", "typo"),)}, ValueError, r"'kq' is not a field of its params MyParams"),
+        ({"gains": ("kp",)}, TypeError, r"gains must be a tuple of registry.Gain"),
+        ({"default_params": lambda: MY_PARAMS}, TypeError, r"default_params must take dtype="),
+        ({"make": MY_OBSERVER}, TypeError, r"make must be a function, got Observer"),
+        ({"make": lambda: 3}, TypeError, r"make\(\) must return a jaxatt.Observer, got int"),
+        ({"frame": "XYZ"}, ValueError, r"frame must be one of ENU, NED, NWU, got 'XYZ'"),
+        ({"hold": "cubic"}, ValueError, r"hold must be one of"),
+        ({"needs": ("gps",)}, ValueError, r"needs must be a tuple of 'acc' / 'mag'"),
+        ({"gains": (registry.Gain("kp", "1/s", "", "odd"),)}, ValueError, r"gain 'kp' has constraint not in"),
+        ({"first_step": "ts"}, ValueError, r"'ts' is not a field"),
+        ({"name": ""}, ValueError, r"Entry.name must be a non-empty string"),
+    ],
+)
+def test_register_refuses_an_unusable_entry_naming_the_field(change, error, match):
+    """registry.register checks the entry (before, a typo in a gain's field surfaced as an AttributeError inside
+    jaxatt.fit, an Observer in ``make`` as 'not callable' at the first filter)."""
+    with pytest.raises(error, match=match) as info:
+        registry.register(_my_entry("_bad")._replace(**change))
+    assert len(str(info.value).splitlines()) == 1 and "_bad" not in registry.names()
+    with pytest.raises(TypeError, match="register takes a jaxatt.observers.registry.Entry, got Observer"):
+        registry.register(MY_OBSERVER)
+
+
+def test_fit_on_trials_refuses_an_observer_estimating_in_another_frame(trials):
+    """broad_score refuses an observer whose estimates are not sensor-to-ENU; the fit on trials (ENU truth) did
+    not, and tuned it against the wrong frame."""
+    try:
+        registry.register(_my_entry("_ned", frame="NED"))
+        with pytest.raises(ValueError, match="'_ned' estimates in NED; BROAD trials hold sensor-to-ENU truth"):
+            jaxatt.fit("_ned", None, trials, steps=1)
+    finally:
+        registry._EXTRA.pop("_ned", None)

@@ -33,6 +33,8 @@ __all__ = [
     "names",
     "get",
     "register",
+    "builtin",
+    "check_entry",
     "recorded_observer",
     "CONSTRAINTS",
     "first_sample_frame",
@@ -202,11 +204,72 @@ def markdown_table() -> str:
 
 
 def register(entry: Entry) -> Entry:
-    """Add an observer of your own to the registry (its name must be new); returns it."""
+    """Add an observer of your own to the registry (its name must be new); returns it.
+
+    The entry is checked first (TypeError / ValueError, one line naming the field): ``make()`` gives an
+    :class:`~jaxatt.types.Observer`, ``default_params(dtype=None)`` a NamedTuple holding every field that ``gains``,
+    ``setup_fields``, ``first_step`` and ``field_unit_gains`` name, ``frame`` / ``hold`` / ``needs`` valid. The
+    front door then checks its observer as it checks one passed directly (:func:`jaxatt.filter`)."""
+    check_entry(entry)
     if entry.name in INDEX or entry.name in _EXTRA:
         raise ValueError(f"an observer named {entry.name!r} is already registered")
     _EXTRA[entry.name] = entry
     return entry
+
+
+def builtin(entry: Entry) -> bool:
+    """True for an observer jaxatt declares (tested with the package), False for one a user registered or
+    changed (``entry._replace(...)``): the front door checks those as it checks a user's own observer."""
+    return entry.name in INDEX and get(entry.name) is entry
+
+
+def check_entry(entry) -> None:
+    """TypeError / ValueError (one line, naming the field) unless ``entry`` is a usable :class:`Entry`."""
+    from ..frames import FRAMES
+    from ..types import HOLDS
+
+    if not isinstance(entry, Entry):
+        raise TypeError(
+            f"register takes a jaxatt.observers.registry.Entry, got {type(entry).__name__} (wrap an Observer: "
+            "Entry(name, summary, reference, make=lambda: observer, default_params=..., gains=(Gain(...), ...)))"
+        )
+    what = f"Entry {entry.name!r}"
+    if not isinstance(entry.name, str) or not entry.name:
+        raise ValueError(f"Entry.name must be a non-empty string, got {entry.name!r}")
+    for field in ("make", "default_params"):
+        if not callable(getattr(entry, field)):
+            raise TypeError(f"{what}: {field} must be a function, got {type(getattr(entry, field)).__name__}")
+    obs = entry.make()
+    if not isinstance(obs, Observer):
+        raise TypeError(f"{what}: make() must return a jaxatt.Observer, got {type(obs).__name__}")
+    if entry.frame not in FRAMES:
+        raise ValueError(f"{what}: frame must be one of {', '.join(FRAMES)}, got {entry.frame!r}")
+    if entry.hold not in HOLDS:
+        raise ValueError(f"{what}: hold must be one of {', '.join(HOLDS)}, got {entry.hold!r}")
+    if not isinstance(entry.needs, tuple) or not set(entry.needs) <= {"acc", "mag"}:
+        raise ValueError(f"{what}: needs must be a tuple of 'acc' / 'mag', got {entry.needs!r}")
+    if not isinstance(entry.gains, tuple) or not all(isinstance(g, Gain) for g in entry.gains):
+        got = [type(g).__name__ for g in entry.gains] if isinstance(entry.gains, (tuple, list)) else entry.gains
+        raise TypeError(f"{what}: gains must be a tuple of registry.Gain(field, unit, doc, ...), got {got}")
+    bad = [g.field for g in entry.gains if g.constraint not in CONSTRAINTS]
+    if bad:
+        raise ValueError(f"{what}: gain {bad[0]!r} has constraint not in {', '.join(CONSTRAINTS)}")
+    try:
+        p = entry.default_params(dtype=None)
+    except TypeError as e:
+        raise TypeError(
+            f"{what}: default_params must take dtype= (default_params(dtype=None) -> Params): {e}"
+        ) from None
+    fields = getattr(p, "_fields", None)
+    if fields is None:
+        raise TypeError(f"{what}: default_params() must return a NamedTuple of params, got {type(p).__name__}")
+    named = [g.field for g in entry.gains] + list(entry.setup_fields) + list(entry.field_unit_gains)
+    named += [entry.first_step] if entry.first_step else []
+    missing = [f for f in named if f not in fields]
+    if missing:
+        raise ValueError(
+            f"{what}: {missing[0]!r} is not a field of its params {type(p).__name__} ({', '.join(fields)})"
+        )
 
 
 # ------------------------------------------------------------------------------------------------------------
