@@ -799,7 +799,8 @@ def _tune(args) -> int:
     config = {"duration": args.duration} if args.duration is not None else None
     from .progress import Heartbeat
 
-    with Heartbeat(f"jaxatt tune {args.experiment}", bool(_progress(args))):
+    with Heartbeat(f"jaxatt tune {args.experiment}", bool(_progress(args))), warnings.catch_warnings():
+        warnings.simplefilter("ignore", fitter.NonFiniteFit)  # said as an error line, exit 1 (_fit_status)
         res = fitter.fit(
             None,
             None,
@@ -1016,7 +1017,8 @@ def _broad_tune(args) -> int:
     trials = _trials_of(args)
     from .progress import Heartbeat
 
-    with Heartbeat(f"jaxatt broad-tune {args.observer}", bool(_progress(args))):
+    with Heartbeat(f"jaxatt broad-tune {args.observer}", bool(_progress(args))), warnings.catch_warnings():
+        warnings.simplefilter("ignore", fitter.NonFiniteFit)  # said as an error line, exit 1 (_fit_status)
         res = fitter.fit(
             args.observer,
             None,

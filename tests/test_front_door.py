@@ -18,6 +18,7 @@ from broad_data import DATA, need_data
 import jaxatt
 from jaxatt import engine, frames, montecarlo, so3
 from jaxatt.data import broad
+from jaxatt.fitting import fitter
 from jaxatt.observers import registry
 from jaxatt.types import ImuSample, Observer
 
@@ -1207,3 +1208,20 @@ def test_fit_on_trials_refuses_an_observer_estimating_in_another_frame(trials):
             jaxatt.fit("_ned", None, trials, steps=1)
     finally:
         registry._EXTRA.pop("_ned", None)
+
+
+def test_a_fit_that_stops_on_non_finite_losses_warns():
+    """A fit whose loss is NaN at every step returned status 'non-finite' and its starting gains without a word
+    (the CLI exits 1 on the same): now a NonFiniteFit warning says so."""
+    samples, truth = _short_log()
+
+    def late_nan_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        q = jnp.where(s.t > 1.5, jnp.nan, new.q)
+        return new._replace(q=q), out._replace(q=q)
+
+    quat = np.asarray(so3.matrix_to_quat(truth.r))
+    trial = broad.Trial("sim", samples, quat, np.ones(len(samples.t), bool), 100.0, "own")
+    with pytest.warns(fitter.NonFiniteFit, match="stopped on a non-finite loss"):
+        res = jaxatt.fit(Observer(my_init, late_nan_step, "late"), MY_PARAMS, [trial], steps=3)
+    assert res.status == "non-finite"

@@ -30,6 +30,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence
@@ -477,6 +478,11 @@ def simulated_objective(
 # ------------------------------------------------------------------------------------------------------------
 # fit
 # ------------------------------------------------------------------------------------------------------------
+class NonFiniteFit(RuntimeWarning):
+    """Warned by :func:`fit` when it stopped on a non-finite loss or gradient (``FitResult.status`` "non-finite"):
+    its params are the best finite gains, not a finished fit. The CLI exits 1 instead."""
+
+
 class FitResult(NamedTuple):
     """:func:`fit`'s result: ``params`` (the best gains, same type as the start), ``start_params``, ``history`` (one
     dict per step), ``status``, ``best_step``, ``best_loss`` (validation loss, or training loss without validation),
@@ -1312,6 +1318,13 @@ def _run(
             which = "the starting gains" if res.best_step == 0 else f"the gains after step {res.best_step}"
             msg += f"; best loss {best_loss:.5g} ({which})"
         print(msg + (f"; gains written to {out_path}" if out_path else ""), file=sys.stderr, flush=True)
+    if res.status == "non-finite":
+        warnings.warn(
+            f"fit {name}: stopped on a non-finite loss or gradient (three steps in a row, or at the last step); "
+            "FitResult.params are the best finite gains (status 'non-finite'): check the data and the gains' range",
+            NonFiniteFit,
+            stacklevel=2,
+        )
     return FitResult(
         best, p0, res.history, res.status, res.best_step, best_loss, res.start_val, str(out_path) if out_path else None
     )
