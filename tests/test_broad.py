@@ -540,6 +540,10 @@ def _synthetic_trial(name="01_x", n=50, rate=100.0):
         (lambda tr: [tr._replace(quat_true=tr.quat_true[:, :3])], r"quat_true must be float \(N, 4\)"),
         (lambda tr: [tr._replace(quat_true=tr.quat_true * 3)], r"quat_true\[0\] has norm 3"),
         (lambda tr: [tr._replace(quat_true=tr.quat_true * 0)], r"quat_true\[0\] has norm 0"),
+        (
+            lambda tr: [tr._replace(quat_true=np.r_[tr.quat_true[:10], tr.quat_true[10:] * np.inf])],
+            r"quat_true contains",
+        ),
         (lambda tr: [tr._replace(movement=tr.movement[:10])], r"movement must be a bool array of shape \(50,\)"),
         (lambda tr: [tr._replace(movement=tr.movement.astype(float))], r"movement must be a bool array"),
         (lambda tr: [tr._replace(rate_hz=float("nan"))], r"rate_hz must be a positive number"),

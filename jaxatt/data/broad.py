@@ -248,6 +248,8 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
         q = np.asarray(tr.quat_true)
         if q.shape != (n, 4) or not np.issubdtype(q.dtype, np.floating):
             raise ValueError(f"{where}: quat_true must be float (N, 4) = ({n}, 4), got {q.dtype}{list(q.shape)}")
+        if np.isinf(q).any():
+            raise ValueError(f"{where}: quat_true contains +-inf (use NaN where the truth is unknown)")
         bad = non_unit_row(q)
         if bad is not None:
             raise ValueError(
