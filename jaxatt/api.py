@@ -825,7 +825,10 @@ def filter(
             f"{'has' if len(nonfinite) == 1 else 'have'} non-finite values",
             stacklevel=2,
         )
-    advice = entry.advise(p, outputs) if entry is not None and entry.advise is not None else None
+    if entry is not None and entry.advise is not None:
+        advice = entry.advise(p, outputs, ImuSample(ts, gyr_a, acc_a, mag_a))
+    else:
+        advice = None
     if advice:
         warnings.warn(f"{name}: {advice}", stacklevel=2)
     # the sample times, exact (float32 rounds Unix times to 128 s)

@@ -111,8 +111,9 @@ class Entry(NamedTuple):
             defaults, :func:`jaxatt.filter`, :func:`jaxatt.broad_score` and :func:`jaxatt.fit` (its start) scale
             them by (|m| / |m_ref|)^2: |m| the recording's first field reading (the median over trials), |m_ref|
             that of the defaults' ``mag_ref_nav``. The defaults then mean the same in uT, nT or gauss.
-        advise: optional ``advise(params, outputs) -> str or None``: after :func:`jaxatt.filter` ran it over a
-            recording (``outputs``: its output fields as numpy arrays), a warning worth giving about that run
+        advise: optional ``advise(params, outputs, samples) -> str or None``: after :func:`jaxatt.filter` ran it
+            over a recording (``outputs``: its output fields, ``samples``: the recording's ImuSample as it ran, in
+            SI units; numpy arrays), a warning worth giving about that run
             (e.g. the robust AHRS's magnetic gate shut in most samples), or None.
     """
 
@@ -134,7 +135,7 @@ class Entry(NamedTuple):
     init_reads: Tuple[str, ...] = ()
     first_step: str = ""
     field_unit_gains: Tuple[str, ...] = ()
-    advise: Optional[Callable[[Any, Any], Optional[str]]] = None
+    advise: Optional[Callable[[Any, Any, Any], Optional[str]]] = None
 
     def gain(self, field: str) -> Gain:
         for g in self.gains:

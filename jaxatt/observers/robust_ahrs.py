@@ -878,18 +878,24 @@ _DOCS = _param_docs()
 GATE_SHUT_WARNING = 0.5
 
 
-def _advise(p: Params, outputs: dict):
+def _advise(p: Params, outputs: dict, samples):
     """The registry entry's ``advise``: when the gate, without ``tau_mag_gate``, rejected the magnetometer in more than
-    :data:`GATE_SHUT_WARNING` of the samples (a disturbed place, or a magnetometer noisier than the thresholds: 2 uT
-    of noise on a 45-uT field shuts the shipped gate in 97 % of them), a line naming ``tau_mag_gate``; else None."""
+    :data:`GATE_SHUT_WARNING` of the samples with a field reading (a disturbed place, or a magnetometer noisier than
+    the thresholds: 2 uT of noise on a 45-uT field shuts the shipped gate in 97 % of them), a line naming
+    ``tau_mag_gate``; else None. Samples without a reading (NaN rows: a slower magnetometer, or none) are not
+    counted: the gate has nothing to accept there."""
     shut = outputs.get("mag_disturbed")
-    if shut is None or len(shut) < 2 or float(np.asarray(p.tau_mag_gate)) > 0:
+    if shut is None or len(shut) < 2 or float(np.asarray(p.tau_mag_gate)) > 0 or samples.mag is None:
         return None
-    frac = float(np.mean(shut[1:]))
+    m = np.asarray(samples.mag, float)
+    read = (np.all(np.isfinite(m), axis=-1) & np.any(m != 0, axis=-1))[1:]
+    if not read.any():
+        return None
+    frac = float(np.mean(np.asarray(shut[1:])[read] > 0.5))
     if frac <= GATE_SHUT_WARNING:
         return None
     return (
-        f"the magnetometer was rejected as disturbed in {100 * frac:.0f} % of the samples (heading from the gyro "
+        f"the magnetometer was rejected as disturbed in {100 * frac:.0f} % of its readings (heading from the gyro "
         "alone there). If the field is not disturbed but the magnetometer is noisy, low-pass what the gate sees: "
         "params={'tau_mag_gate': 0.1} (s)"
     )
