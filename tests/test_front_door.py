@@ -985,6 +985,20 @@ def test_fit_arguments_of_the_wrong_kind_are_named(kwargs, match):
         jaxatt.fit("madgwick", None, [_tiny_trial()], **{"steps": 1, **kwargs})
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"freeze": ["kp", "ki"]}, r"no gain left to tune \(freeze names every tunable field: \['ki', 'kp'\]\)"),
+        ({"masks": {"kp": [True, False]}}, r"masks\['kp'\] of shape \[2\] does not fit its \[\] learnt values"),
+    ],
+)
+def test_fit_options_on_your_observer_are_named(kwargs, match):
+    """Freezing every gain of a user's observer, or a mask of the wrong shape, is one line naming it (they were
+    errors from inside JAX / numpy: 'at least one array or dtype is required', 'cannot broadcast')."""
+    with pytest.raises(ValueError, match=match):
+        jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], **{"steps": 1, **kwargs})
+
+
 def test_one_float64_trial_makes_the_batch_float64():
     """compute_dtype looks at every trial: a float32 trial beside a float64 one does not narrow the float64 one."""
     t64 = _tiny_trial()

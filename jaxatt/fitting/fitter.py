@@ -521,6 +521,9 @@ def _parametrization(entry, params, *, tune, freeze, masks, method, transforms):
         p = p.with_mask(f, m)
     for f, tr in (transforms or {}).items():
         p = P.Parametrization({**p.transforms, f: tr}, p.masks)
+    if not p.transforms:
+        why = f"freeze names every tunable field: {sorted(freeze)}" if freeze else "name the gains with tune="
+        raise ValueError(f"no gain left to tune ({why})")
     return p.bind(params)
 
 

@@ -441,7 +441,13 @@ class Parametrization:
             if m is None and isinstance(tr, SPD) and tr.structure == "diagonal":
                 m = SPD.diagonal_mask(v.shape[0])
             if m is not None:
-                m = np.broadcast_to(np.asarray(m, bool), th0[f].shape).copy()
+                try:
+                    m = np.broadcast_to(np.asarray(m, bool), th0[f].shape).copy()
+                except ValueError:
+                    raise ValueError(
+                        f"masks[{f!r}] of shape {list(np.shape(m))} does not fit its {list(th0[f].shape)} learnt "
+                        "values (one True / False per value, or one for all)"
+                    ) from None
                 masks[f] = m
         return BoundParametrization(trs, masks, th0, params)
 
