@@ -767,6 +767,7 @@ def filter(
         q = np.asarray(engine.estimate_q(out))
         extra: Dict[str, Any] = {}
     else:
+        smoothing.check_time_reversed(obs, p_run, name)
         heading = ("mag" in entry.needs) if entry is not None else mag_a is not None
         sm = smoothing.compiled(
             obs,
@@ -958,6 +959,7 @@ def broad_score(
     if spec is None:
         res = B.score(obs, p_run, trials, hold=hold, dtype=dt_)
     else:
+        smoothing.check_time_reversed(obs, p_run, name)
         heading = ("mag" in entry.needs) if entry is not None else True
         metric = smoothing.broad_metric_fn(obs, trials, hold=hold, dtype=dt_, offline=spec, heading=heading)
         summary = jax.device_get(metric(p_run, engine.cast_floats(spec.fusion, dt_)))  # not jitted: see there

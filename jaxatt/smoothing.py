@@ -444,6 +444,25 @@ def reversed_params(observer, params):
     return params if observer.time_reversed is None else observer.time_reversed(params)
 
 
+def check_time_reversed(observer, params, name: str) -> None:
+    """ValueError (one line) unless ``observer.time_reversed(params)`` (when declared) runs and gives params of the
+    same type and structure: checked on concrete params before an offline run compiles (a user's function failing
+    inside the trace was a bare AttributeError / ZeroDivisionError)."""
+    if observer.time_reversed is None:
+        return
+    try:
+        back = observer.time_reversed(params)
+    except Exception as e:
+        first = (str(e).splitlines() or [""])[0]
+        raise ValueError(f"observer {name!r}: time_reversed(params) failed: {type(e).__name__}: {first}") from e
+    same = type(back) is type(params) and (jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(params))
+    if not same:
+        raise ValueError(
+            f"observer {name!r}: time_reversed(params) must return params of the same type and fields "
+            f"({type(params).__name__}), got {type(back).__name__}"
+        )
+
+
 def passes_fn(
     observer,
     n_steps: int,

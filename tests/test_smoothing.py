@@ -216,6 +216,16 @@ def test_bad_offline_settings_are_one_clear_line(sim):
         jaxatt.filter("mahony", g, a, m, dt=0.01, offline={"tau": 1.0})
     with pytest.raises(ValueError, match="seed_bias needs an output field bias"):
         jaxatt.filter("madgwick", g[:50], a[:50], m[:50], dt=0.01, offline=S.Offline(seed_bias=True))
+    # a user's time_reversed that fails, or returns something else than its params: one line naming it
+    mahony = registry.get("mahony")
+    p = mahony.default_params()
+    for reverse, match in (
+        (lambda q: (1.0,), r"time_reversed\(params\) must return params of the same type and fields \(Params\), got"),
+        (lambda q: 1 / 0, r"time_reversed\(params\) failed: ZeroDivisionError"),
+    ):
+        mine = registry.recorded_observer(mahony)._replace(name="mine", time_reversed=reverse)
+        with pytest.raises(ValueError, match=match):
+            jaxatt.filter(mine, g[:50], a[:50], m[:50], dt=0.01, params=p, offline=True)
 
 
 def test_broad_score_offline_is_the_metric_of_the_smoothed_estimate():
