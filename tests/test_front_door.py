@@ -292,6 +292,8 @@ def test_fit_your_observer_on_trials_keeps_its_type_and_lowers_the_loss(trials, 
     other = Observer(my_init, my_step, "another")
     with pytest.raises(ValueError, match="resume: the saved fit is of observer 'my_mahony', not 'another'"):
         jaxatt.fit(other, MY_PARAMS, trials, steps=6, lr=0.2, out=str(out), resume=True)
+    with pytest.raises(ValueError, match=r"'steps' differs .*\(4 vs 6\) \(the cosine schedule's length"):
+        jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=6, lr=0.2, out=str(out), resume=True)
     # the same fit again (a new objective closure, the same program) is not compiled again and gives the same gains
     compiled = engine.program_cache_stats["compiled"]
     again = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=4, lr=0.2)

@@ -13,8 +13,9 @@ interval; bounded gains are projected back into their bounds after each step.
 
 Resuming: ``fit(..., out=path, resume=True)`` continues from the state saved in ``path`` (same settings; the data
 order, optimizer state and best-so-far are restored, so the result equals an uninterrupted run to rounding; with a
-larger ``steps`` a finished fit continues). A finished gains file is never replaced by a new fit unless
-``overwrite=True``, and then only once the new fit has finished: until then it saves itself in
+larger ``steps`` a finished fit with a constant learning rate continues, while a cosine schedule, the default of a
+fit on trials, is set by ``steps`` and needs the same ``steps``). A finished gains file is never replaced by a new
+fit unless ``overwrite=True``, and then only once the new fit has finished: until then it saves itself in
 ``<out>.partial.json`` (:func:`partial_path`), which ``resume=True`` continues.
 
 Several processes (``jax.distributed``, :func:`jaxatt.sharding.initialize_distributed`): every process calls
@@ -1242,8 +1243,10 @@ def _run(
         old = {"optimizer": "adam", **old}  # files written before the choice existed: Adam
         for k in keys + ["optimizer"]:
             if old.get(k) != settings.get(k):
+                why = " (the cosine schedule's length: continue with the same steps, or schedule='constant')"
                 raise ValueError(
                     f"resume: setting {k!r} differs from the saved fit ({old.get(k)!r} vs {settings.get(k)!r})"
+                    + (why if k == "steps" else "")
                 )
         for k in ("train_data", "val_data"):  # files written before the fingerprint have none
             if k in old and old[k] != settings.get(k):
