@@ -100,7 +100,10 @@ def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndar
         raise ValueError(f"{name} has {a.shape[0]} samples, gyr has {n}")
     if np.any(np.isinf(a)):
         raise ValueError(f"{name} contains +-inf (mark a missing reading with NaN)")
-    return a if np.issubdtype(a.dtype, np.floating) else a.astype(np.float64)
+    if np.issubdtype(a.dtype, np.floating):
+        return a
+    # integer counts: float64 where JAX computes in it, else float32 (not a "float64 input" narrowed with a warning)
+    return a.astype(np.float64 if jax.config.values["jax_enable_x64"] else np.float32)
 
 
 def _valid_rows(a: np.ndarray) -> np.ndarray:

@@ -934,6 +934,11 @@ def test_float64_input_without_x64_warns_and_runs_float32():
         assert api.compute_dtype(np.zeros(3, np.float32)) == np.float32
         with pytest.raises(ValueError, match="x64"):
             api.compute_dtype(np.zeros(3), dtype="float64")
+        # integer readings (counts) are no float64 input: no warning (it said "float64 input" before)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            ints = api._vectors("gyr", np.zeros((5, 3), np.int32), 5, True)
+            assert ints.dtype == np.float32 and api.compute_dtype(ints, np.zeros((5, 3), np.float32)) == np.float32
     finally:
         jax.config.update("jax_enable_x64", True)
     assert api.compute_dtype(np.zeros(3)) == np.float64
