@@ -455,7 +455,8 @@ def check_time_reversed(observer, params, name: str) -> None:
     except Exception as e:
         first = (str(e).splitlines() or [""])[0]
         raise ValueError(f"observer {name!r}: time_reversed(params) failed: {type(e).__name__}: {first}") from e
-    same = type(back) is type(params) and (jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(params))
+    structure = jax.tree_util.tree_structure
+    same = type(back) is type(params) and str(structure(back)) == str(structure(params))
     if not same:
         raise ValueError(
             f"observer {name!r}: time_reversed(params) must return params of the same type and fields "
