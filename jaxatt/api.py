@@ -1090,7 +1090,7 @@ def monte_carlo(
     ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
     if not 0.0 <= ws < duration:
         raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")
-    if entry is None:
+    if entry is None or not registry.builtin(entry):
         step = mc.check_dt(dt)
         n_check = max(1, min(CHECK_SAMPLES - 1, int(round(duration / step))))
         log, _ = mc.simulate_log(scn, duration=n_check * step, dt=step, seed=int(seed) if isinstance(seed, int) else 0)
