@@ -1449,6 +1449,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             raise
         print(f"jaxatt: error: non-finite result: {e}", file=sys.stderr)
         return 1
+    except OSError as e:  # a file that cannot be read or written (permissions, a full disk, /dev/full)
+        if args.debug:
+            raise
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"jaxatt: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
 
 
 def compile_cache_dir(environ=os.environ) -> Optional[str]:
@@ -1475,6 +1481,8 @@ def compile_cache_dir(environ=os.environ) -> Optional[str]:
 
 #: Most CPU devices the ``jaxatt`` command asks for (one per core, up to this many).
 MAX_CPU_DEVICES = 32
+#: the most CPU devices ``JAXATT_CPU_DEVICES`` may ask for (each is a thread pool: 100000 took 20 GB and aborted)
+MAX_USER_CPU_DEVICES = 256
 
 
 def cpu_device_count(environ=os.environ) -> Optional[int]:
@@ -1489,8 +1497,11 @@ def cpu_device_count(environ=os.environ) -> Optional[int]:
         return None
     choice = environ.get("JAXATT_CPU_DEVICES", "").strip()
     if choice:
-        if not choice.isdigit() or int(choice) < 1:
-            raise ValueError(f"JAXATT_CPU_DEVICES must be a positive integer, got {choice!r}")
+        if not choice.isdigit() or not 1 <= int(choice) <= MAX_USER_CPU_DEVICES:
+            raise ValueError(
+                f"JAXATT_CPU_DEVICES must be an integer from 1 to {MAX_USER_CPU_DEVICES}, got {choice!r} (one "
+                "device per core is the default)"
+            )
         return int(choice)
     if environ.get("JAXATT_NUM_PROCESSES"):  # several processes (jax.distributed): one device each
         return 1

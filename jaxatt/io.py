@@ -195,6 +195,15 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
     if not is_main_process():
         return
     p = Path(path)
+    try:
+        _write_atomic(p, write, binary)
+    except OSError as e:  # a full disk, no permission: the error names the file it was writing
+        if getattr(e, "filename", None):
+            raise
+        raise OSError(e.errno, e.strerror or str(e), str(p)) from e
+
+
+def _write_atomic(p: Path, write: Callable[[Any], None], binary: bool) -> None:
     if is_special(p):  # a device or FIFO (/dev/null): write into it; renaming over it would replace the device
         with open(p, "wb" if binary else "w") as f:
             write(f)

@@ -265,6 +265,12 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     ned = np.genfromtxt(out2, delimiter=",", names=True)
     q_ned = np.column_stack([ned[c] for c in ("qw", "qx", "qy", "qz")])
     np.testing.assert_allclose(q_ned, jaxatt.frames.change_frame(est.quat, "NED", "ENU"), atol=1e-15)
+    # an output that cannot be written (a full disk: /dev/full): one line naming it, exit 2, no traceback
+    if Path("/dev/full").exists():
+        capsys.readouterr()
+        assert cli.main(["filter", "--log", str(log), "--observer", "mahony", "--out", "/dev/full"]) == 2
+        err = capsys.readouterr().err
+        assert err == "jaxatt: error: /dev/full: No space left on device\n", err
     # --dt that disagrees with the log's timestamps: said on stderr (the t column then restarts at 0)
     capsys.readouterr()
     out4 = tmp_path / "est_dt.csv"
@@ -650,6 +656,8 @@ def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):
     assert 1 <= cli.cpu_device_count({}) <= min(os.cpu_count() or 1, cli.MAX_CPU_DEVICES)
     with pytest.raises(ValueError, match="JAXATT_CPU_DEVICES"):
         cli.cpu_device_count({"JAXATT_CPU_DEVICES": "two"})
+    with pytest.raises(ValueError, match="JAXATT_CPU_DEVICES must be an integer from 1 to 256, got '100000'"):
+        cli.cpu_device_count({"JAXATT_CPU_DEVICES": "100000"})  # a typo took 20 GB and aborted in XLA
     args = ["simulate", "--observer", "batista-ges", "--runs", "3", "--duration", "20", "--quiet"]
     one = tmp_path / "one.json"
     assert cli.main(args + ["--json", str(one)]) == 0
@@ -672,7 +680,8 @@ def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):
         [sys.executable, "-m", "jaxatt", *args], env={**env, "JAXATT_CPU_DEVICES": "0"}, capture_output=True, text=True
     )
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "jaxatt: error: JAXATT_CPU_DEVICES must be a positive integer, got '0'"
+        "jaxatt: error: JAXATT_CPU_DEVICES must be an integer from 1 to 256, got '0' (one device per core is the "
+        "default)"
     ]
 
 

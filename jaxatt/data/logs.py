@@ -625,8 +625,11 @@ def load_log(
     if not Path(path).is_file():
         raise ValueError(f"log {path}: not found" if not Path(path).exists() else f"log {path}: not a file")
     if kind == "csv":
-        with open(path, "rb") as f:
-            head = f.read(4096)
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4096)
+        except OSError as e:  # no read permission: one line, as from the loaders below
+            raise ValueError(f"log {path}: cannot read it ({e.strerror or e})") from None
         # UTF-16 (with or without its byte-order mark; ASCII in UTF-16 is every other byte NUL, valid UTF-8)
         if head[:2] in (b"\xff\xfe", b"\xfe\xff") or head.count(b"\x00") > len(head) // 4:
             raise ValueError(
