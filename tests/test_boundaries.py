@@ -718,6 +718,23 @@ def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues
     partial = jaxatt.fitting.fitter.partial_path(out)
     assert res.status == "interrupted" and res.path == str(partial)
     assert out.read_bytes() == finished
+    # a damaged resume state (hand-edited, another version) is one line, not a KeyError / TypeError traceback or
+    # a restart from step -5
+    for damage, match in (
+        ({"theta": {}}, r"damaged \(theta holds \[\], not the gains"),
+        ({"opt_state": None}, r"damaged \(the saved optimizer state does not match"),
+        ({"best_theta": "garbage"}, r"damaged \(best_theta holds str"),
+        ({"step": -5}, r"damaged \(step -5 is not a number of steps\)"),
+        ({"step": 3}, r"damaged \(step must be the number of steps done \(0 to 2\), got 3\)"),
+        ({"sampler": None}, r"damaged \("),
+    ):
+        saved = json.loads(partial.read_text())
+        saved["resume"].update(damage)
+        broken = tmp_path / "broken.json"
+        broken.write_text(json.dumps(saved))
+        with pytest.raises(ValueError, match=match) as e:
+            jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(broken), resume=True)
+        assert "\n" not in str(e.value) and "resume: the saved fit state" in str(e.value)
     resumed = jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(out), resume=True)
     assert resumed.status == "done" and resumed.path == str(out) and not partial.exists()
     assert len(resumed.history) == 4  # steps 1-2 before the interrupt, 3-4 after (equality: tests/test_tune.py)

@@ -178,6 +178,20 @@ def value_and_grad_forward(fn: Callable) -> Callable:
     return vg
 
 
+def _restored_theta(saved, like: dict, dtype, what: str) -> dict:
+    """A saved theta (gain -> nested lists) as arrays shaped as ``like``'s (ValueError naming what differs)."""
+    if not isinstance(saved, dict) or set(saved) != set(like):
+        got = sorted(saved) if isinstance(saved, dict) else type(saved).__name__
+        raise ValueError(f"{what} holds {got}, not the gains {sorted(like)}")
+    out = {k: jnp.asarray(v, dtype) for k, v in saved.items()}
+    bad = [k for k in like if np.shape(out[k]) != np.shape(like[k])]
+    if bad:
+        raise ValueError(
+            f"{what}[{bad[0]!r}] has shape {list(np.shape(out[bad[0]]))}, not {list(np.shape(like[bad[0]]))}"
+        )
+    return out
+
+
 def optimize(
     objective: Callable,
     theta0: Dict[str, Any],
@@ -267,22 +281,33 @@ def optimize(
     best_train = math.inf
     if resume:
         dtype = jax.tree_util.tree_leaves(theta)[0].dtype
-        theta = {k: jnp.asarray(v, dtype) for k, v in resume["theta"].items()}
         leaves, treedef = jax.tree_util.tree_flatten(opt_state)
-        saved = resume["opt_state"]
-        if len(saved) != len(leaves):
-            raise ValueError("resume: the saved optimizer state does not match these settings")
-        opt_state = jax.tree_util.tree_unflatten(
-            treedef, [jnp.asarray(v, getattr(leaf, "dtype", None)) for v, leaf in zip(saved, leaves)]
-        )
-        best_theta = {k: jnp.asarray(v, dtype) for k, v in resume["best_theta"].items()}
-        best_val, best_step, start_val = resume["best_val"], resume["best_step"], resume["start_val"]
-        bad, n_nonfinite = resume["bad"], resume["n_nonfinite"]
-        saved_best_train = resume.get("best_train")
-        best_train = saved_best_train if saved_best_train is not None else math.inf
-        history = list(resume["history"])
-        sampler.restore(resume["sampler"])
-        first = int(resume["step"]) + 1
+        try:
+            theta = _restored_theta(resume["theta"], theta, dtype, "theta")
+            saved = resume["opt_state"]
+            if not isinstance(saved, list) or len(saved) != len(leaves):
+                raise ValueError("the saved optimizer state does not match these settings")
+            restored = [jnp.asarray(v, getattr(leaf, "dtype", None)) for v, leaf in zip(saved, leaves)]
+            if any(np.shape(a) != np.shape(leaf) for a, leaf in zip(restored, leaves)):
+                raise ValueError("the saved optimizer state's shapes do not match these gains")
+            opt_state = jax.tree_util.tree_unflatten(treedef, restored)
+            best_theta = _restored_theta(resume["best_theta"], theta, dtype, "best_theta")
+            best_val, best_step, start_val = resume["best_val"], int(resume["best_step"]), resume["start_val"]
+            bad, n_nonfinite = int(resume["bad"]), int(resume["n_nonfinite"])
+            saved_best_train = resume.get("best_train")
+            best_train = float(saved_best_train) if saved_best_train is not None else math.inf
+            history = list(resume["history"])
+            step_done = resume["step"]
+            if not isinstance(step_done, int) or isinstance(step_done, bool) or not 0 <= step_done <= len(history):
+                raise ValueError(f"step must be the number of steps done (0 to {len(history)}), got {step_done!r}")
+            sampler.restore(resume["sampler"])
+            first = step_done + 1
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+            what = f"no {e}" if isinstance(e, KeyError) else str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise ValueError(
+                f"resume: the saved fit state is damaged ({what}); fit again without resume (overwrite=True / "
+                "--overwrite replaces the file)"
+            ) from None
     t_start = time.perf_counter()
 
     def validate(th):
@@ -1258,7 +1283,13 @@ def _run(
         resume_state = previous.get("resume")
         if not resume_state:
             raise ValueError(f"resume: {out_path} holds no resume state")
-        if int(resume_state["step"]) >= steps:
+        done = resume_state.get("step") if isinstance(resume_state, dict) else None
+        if not isinstance(done, int) or isinstance(done, bool) or done < 0:
+            raise ValueError(
+                f"resume: the saved fit state in {out_path} is damaged (step {done!r} is not a number of steps); fit "
+                "again without resume (overwrite=True / --overwrite replaces the file)"
+            )
+        if done >= steps:
             more = (
                 " (its cosine schedule ends there: start a new fit from its gains instead: start= / --init-gains)"
                 if settings.get("schedule") == "cosine"
