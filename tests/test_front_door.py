@@ -1020,14 +1020,16 @@ def test_one_float64_trial_makes_the_batch_float64():
     assert np.asarray(res.params.beta).dtype == np.float64
 
 
+def narrow_step(p, st, s, dt):
+    """my_step returning a float32 q (whatever the arithmetic)."""
+    new, out = my_step(p, st, s, dt)
+    return new, out._replace(q=out.q.astype(jnp.float32))
+
+
 def test_narrowed_or_non_finite_outputs_of_a_users_observer_are_said():
     """float64 input and a step that returns a float32 q: a warning (the estimates lose precision); a finite q with
     a NaN field beside it: a warning naming the field (not a silent success)."""
     samples, _ = _short_log()
-
-    def narrow_step(p, st, s, dt):
-        new, out = my_step(p, st, s, dt)
-        return new, out._replace(q=out.q.astype(jnp.float32))
 
     def nan_step(p, st, s, dt):
         new, out = my_step(p, st, s, dt)
@@ -1168,10 +1170,6 @@ def test_a_registered_users_observer_is_checked_as_one_passed_directly():
     ones were checked): a float32 q from float64 input is warned about, a non-unit q is refused naming the fix (not
     called an overflow), and broad_score refuses it before the batch run instead of scoring it."""
     samples, _ = _short_log()
-
-    def narrow_step(p, st, s, dt):
-        new, out = my_step(p, st, s, dt)
-        return new, out._replace(q=out.q.astype(jnp.float32))
 
     def double_step(p, st, s, dt):
         new, out = my_step(p, st, s, dt)
