@@ -39,9 +39,12 @@ def _write_csv(path, t, gyr, acc, mag):
     np.savetxt(path, np.column_stack([t, gyr, acc, mag]), delimiter=",", header=header, comments="")
 
 
-def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True):
+def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True, inf=False):
     h5py = pytest.importorskip("h5py")
     t, gyr, acc, mag = _log_rows(n)
+    if inf:
+        gyr = np.array(gyr)
+        gyr[5, 0] = np.inf
     with h5py.File(path, "w") as f:
         for k, v in {
             "imu_gyr": gyr,
@@ -97,6 +100,7 @@ def make_files(d: Path) -> None:
         "rate0": {"rate": 0.0},
         "truncated": {"truncate": True},
         "no_truth": {"truth": False},
+        "inf": {"inf": True},
     }.items():
         (d / f"trials_{name}").mkdir()
         _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
@@ -173,6 +177,10 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/unix_float32.npz", "--out", "{d}/keep.csv"], r"float32 timestamps near 1\.7e\+09 s"),
     (["filter", "--log", "{d}/trials_no_mag/01_no_mag.hdf5", "--out", "{d}/keep.csv"], r"imu_mag"),
     (["filter", "--log", "{d}/trials_rate0/01_rate0.hdf5", "--out", "{d}/keep.csv"], r"sampling_rate"),
+    (
+        ["filter", "--log", "{d}/trials_inf/01_inf.hdf5", "--out", "{d}/keep.csv"],
+        r"01_inf\.hdf5: imu_gyr contains \+-inf",
+    ),
     (["filter", "--log", "{d}/trials_truncated/01_truncated.hdf5", "--out", "{d}/keep.csv"], r"truncated|read"),
     # reproduce / simulate
     (["reproduce", "batista-ges", *MC, "--json", "{d}/folder"], r"--json .*folder: is a folder"),

@@ -200,6 +200,9 @@ def load_trial(path) -> Trial:
         raise ValueError(f"{path.name}: opt_quat {quat.shape} / movement {movement.shape} do not match N = {n}")
     if not (np.isfinite(rate) and rate > 0):
         raise ValueError(f"{path.name}: sampling_rate must be a positive number of Hz, got {rate}")
+    for k, v in (("imu_gyr", gyr), ("imu_acc", acc), ("imu_mag", mag), ("opt_quat", quat)):
+        if np.isinf(v).any():
+            raise ValueError(f"{path.name}: {k} contains +-inf (NaN marks a missing reading or truth)")
     t = np.arange(n, dtype=np.float64) / rate
     try:
         group = group_of(path.stem, load_trial_info(path.parent))
