@@ -1175,6 +1175,8 @@ def _filter(args) -> int:
         )
     units = {"gyr_unit": args.gyr_unit, "acc_unit": args.acc_unit, "time_unit": args.time_unit}
     samples, rate = _load_any_log(args.log, args.dt, args.columns, **units)
+    if len(samples.t) < 2:
+        raise UserError(f"--log {args.log}: {len(samples.t)} sample; a filter needs at least 2")
     dt = args.dt if args.dt is not None else (1.0 / rate if rate else None)
     if args.dt is not None and len(samples.t) > 1:
         d = np.diff(np.asarray(samples.t, float))

@@ -79,6 +79,9 @@ def make_files(d: Path) -> None:
     # float32 Unix times: 1.7e9 s in float32 steps by 128 s, so the 0.01-s samples collide
     np.savez(d / "unix_float32.npz", t=(1.7e9 + t).astype(np.float32), gyr=gyr, acc=acc, mag=mag)
     (d / "empty.csv").write_text("")
+    (d / "one_row.csv").write_text(
+        "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z\n0,0,0,0,0,0,9.8,20,0,-40\n"
+    )
     bad_inf = np.column_stack([t, gyr, acc, mag]).astype(object)
     bad_inf[5, 1] = "inf"
     (d / "inf.csv").write_text(
@@ -172,6 +175,10 @@ BAD_INPUT = [
     (["filter", "--log", "{d}/log.csv", "--frame", "XYZ", "--out", "{d}/keep.csv"], r"argument --frame"),
     (["filter", "--log", "{d}/no_header.csv", "--out", "{d}/keep.csv"], r"header"),
     (["filter", "--log", "{d}/empty.csv", "--out", "{d}/keep.csv"], r"empty\.csv"),
+    (
+        ["filter", "--log", "{d}/one_row.csv", "--out", "{d}/keep.csv"],
+        r"--log .*one_row\.csv: 1 sample; a filter needs",
+    ),
     (["filter", "--log", "{d}/inf.csv", "--out", "{d}/keep.csv"], r"inf"),
     (["filter", "--log", "{d}/backwards.csv", "--out", "{d}/keep.csv"], r"increasing"),
     (["filter", "--log", "{d}/unix_float32.npz", "--out", "{d}/keep.csv"], r"float32 timestamps near 1\.7e\+09 s"),
