@@ -426,7 +426,7 @@ def _first_field_norm(mag) -> float:
     if mag is None:
         return float("nan")
     m = np.asarray(mag, float)
-    ok = np.all(np.isfinite(m), axis=-1) & np.any(m != 0, axis=-1)
+    ok = _valid_rows(m)
     return float(np.linalg.norm(m[np.argmax(ok)])) if ok.any() else float("nan")
 
 

@@ -1489,7 +1489,7 @@ MAX_USER_CPU_DEVICES = 256
 
 def cpu_device_count(environ=os.environ) -> Optional[int]:
     """How many CPU devices the ``jaxatt`` command asks JAX for, so that Monte Carlo and tuning split their runs
-    over every core (:mod:`jaxatt.sharding`): ``$JAXATT_CPU_DEVICES`` if set (a positive integer), else the cores
+    over every core (:mod:`jaxatt.sharding`): ``$JAXATT_CPU_DEVICES`` if set (1 to 256), else the cores
     this process may use (at most :data:`MAX_CPU_DEVICES`; 1 when ``JAXATT_NUM_PROCESSES`` starts several
     processes, :func:`jaxatt.sharding.initialize_distributed`); None when JAX is told already
     (``JAX_NUM_CPU_DEVICES``, or ``--xla_force_host_platform_device_count`` in ``XLA_FLAGS``: the user's setting

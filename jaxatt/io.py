@@ -198,9 +198,9 @@ def write_atomic(path, write: Callable[[Any], None], binary: bool = False) -> No
     try:
         _write_atomic(p, write, binary)
     except OSError as e:  # a full disk, no permission: the error names the file it was writing
-        if getattr(e, "filename", None):
+        if getattr(e, "filename", None) == str(p):
             raise
-        raise OSError(e.errno, e.strerror or str(e), str(p)) from e
+        raise OSError(e.errno, e.strerror or str(e), str(p)) from e  # not the temporary file's name
 
 
 def _write_atomic(p: Path, write: Callable[[Any], None], binary: bool) -> None:

@@ -1187,6 +1187,8 @@ def test_a_registered_users_observer_is_checked_as_one_passed_directly():
         )
         with pytest.raises(ValueError, match="not a unit quaternion .* before the batch run"):
             jaxatt.broad_score("_double", None, [trial])
+        with pytest.raises(ValueError, match="not a unit quaternion .* before the batch run"):
+            jaxatt.monte_carlo("_double", runs=2, duration=2.0)
     finally:
         registry._EXTRA.pop("_narrow", None)
         registry._EXTRA.pop("_double", None)
@@ -1218,13 +1220,13 @@ def test_register_refuses_an_unusable_entry_naming_the_field(change, error, matc
         registry.register(MY_OBSERVER)
 
 
-def test_fit_on_trials_refuses_an_observer_estimating_in_another_frame(trials):
+def test_fit_on_trials_refuses_an_observer_estimating_in_another_frame():
     """broad_score refuses an observer whose estimates are not sensor-to-ENU; the fit on trials (ENU truth) did
     not, and tuned it against the wrong frame."""
     try:
         registry.register(_my_entry("_ned", frame="NED"))
         with pytest.raises(ValueError, match="'_ned' estimates in NED; BROAD trials hold sensor-to-ENU truth"):
-            jaxatt.fit("_ned", None, trials, steps=1)
+            jaxatt.fit("_ned", None, [_tiny_trial()], steps=1)
     finally:
         registry._EXTRA.pop("_ned", None)
 

@@ -21,12 +21,19 @@ def test_table_holds_the_results_files_numbers(tmp_path):
     text = out.read_text()
     rows = json.loads(RESULTS.read_text())
     rows = rows.get("payload", rows)["results"]
-    fused = rows["vqf-offline"]["trials"]
-    lines = {ln.split("|")[1].strip(): ln for ln in text.splitlines() if ln.startswith("| ")}
-    for name, t in fused.items():
-        assert f"{t['total_rmse_deg']:.2f} |" in lines[name], name
+    cols = [c for c in offline_table.COLUMNS if c[1] in rows]
+    assert len(cols) == len(offline_table.COLUMNS)  # this file has every row
+
+    def number(row, trial, where):  # read here from the JSON, not with offline_table's helper
+        t = rows[row]["trials"][trial] if where == "fused" else rows[row].get("forward", {}).get(trial)
+        return t["total_rmse_deg"] if t is not None else rows[row]["trials"][trial]["forward_total_rmse_deg"]
+
+    lines = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[3:-1]] for ln in text.splitlines()
+             if ln.startswith("| ")}  # fmt: skip
+    trials = rows["vqf-offline"]["trials"]
+    for name in trials:
+        assert lines[name] == [f"{number(row, name, where):.2f}" for _, row, where in cols], name
     for group in ("undisturbed", "disturbed"):
-        names = [n for n, t in fused.items() if t["group"] == group]
-        mean = np.mean([fused[n]["total_rmse_deg"] for n in names])
-        cells = [c.strip() for c in lines[f"**mean, {group}** ({len(names)})"].split("|")]
-        assert cells[-2] == f"**{mean:.2f}**", (group, cells[-2], mean)  # the last column: vqf.offlineVQF
+        names = [n for n, t in trials.items() if t["group"] == group]
+        means = [np.mean([number(row, n, where) for n in names]) for _, row, where in cols]
+        assert lines[f"**mean, {group}** ({len(names)})"] == [f"**{m:.2f}**" for m in means], group

@@ -298,8 +298,9 @@ def optimize(
             best_train = float(saved_best_train) if saved_best_train is not None else math.inf
             history = list(resume["history"])
             step_done = resume["step"]
-            if not isinstance(step_done, int) or isinstance(step_done, bool) or not 0 <= step_done <= len(history):
-                raise ValueError(f"step must be the number of steps done (0 to {len(history)}), got {step_done!r}")
+            last = history[-1]["step"] if history else 0  # as result() writes it
+            if step_done != last or isinstance(step_done, bool):
+                raise ValueError(f"step {step_done!r} is not the last step of its history ({last})")
             sampler.restore(resume["sampler"])
             first = step_done + 1
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
@@ -758,6 +759,13 @@ def fit(
             "(resume=True / --resume continues it)",
             file=sys.stderr,
             flush=True,
+        )
+    if res.status == "non-finite":
+        warnings.warn(
+            "fit: stopped on a non-finite loss or gradient (three steps in a row, or at the last step); "
+            "FitResult.params are the best finite gains (status 'non-finite'): check the data and the gains' range",
+            NonFiniteFit,
+            stacklevel=2,
         )
     return res
 
@@ -1268,7 +1276,10 @@ def _run(
         old = {"optimizer": "adam", **old}  # files written before the choice existed: Adam
         for k in keys + ["optimizer"]:
             if old.get(k) != settings.get(k):
-                why = " (the cosine schedule's length: continue with the same steps, or schedule='constant')"
+                why = (
+                    " (the cosine schedule's length: continue with the same steps, or start a new fit from its gains: "
+                    "start= / --init-gains)"
+                )
                 raise ValueError(
                     f"resume: setting {k!r} differs from the saved fit ({old.get(k)!r} vs {settings.get(k)!r})"
                     + (why if k == "steps" else "")
@@ -1355,13 +1366,6 @@ def _run(
             which = "the starting gains" if res.best_step == 0 else f"the gains after step {res.best_step}"
             msg += f"; best loss {best_loss:.5g} ({which})"
         print(msg + (f"; gains written to {out_path}" if out_path else ""), file=sys.stderr, flush=True)
-    if res.status == "non-finite":
-        warnings.warn(
-            f"fit {name}: stopped on a non-finite loss or gradient (three steps in a row, or at the last step); "
-            "FitResult.params are the best finite gains (status 'non-finite'): check the data and the gains' range",
-            NonFiniteFit,
-            stacklevel=2,
-        )
     return FitResult(
         best, p0, res.history, res.status, res.best_step, best_loss, res.start_val, str(out_path) if out_path else None
     )

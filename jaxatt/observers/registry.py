@@ -112,8 +112,8 @@ class Entry(NamedTuple):
             them by (|m| / |m_ref|)^2: |m| the recording's first field reading (the median over trials), |m_ref|
             that of the defaults' ``mag_ref_nav``. The defaults then mean the same in uT, nT or gauss.
         advise: optional ``advise(params, outputs, samples) -> str or None``: after :func:`jaxatt.filter` ran it
-            over a recording (``outputs``: its output fields, ``samples``: the recording's ImuSample as it ran, in
-            SI units; numpy arrays), a warning worth giving about that run
+            over a recording (``outputs``: its output fields, ``samples``: the recording's ImuSample as it ran, gyr
+            and acc in SI units, mag in the recording's unit; numpy arrays), a warning worth giving about that run
             (e.g. the robust AHRS's magnetic gate shut in most samples), or None.
     """
 
@@ -224,6 +224,18 @@ def builtin(entry: Entry) -> bool:
     return entry.name in INDEX and get(entry.name) is entry
 
 
+def _takes_positional(fn, n: int) -> bool:
+    import inspect
+
+    try:
+        inspect.signature(fn).bind(*range(n))
+    except TypeError:
+        return False
+    except ValueError:  # no signature (a builtin): cannot tell
+        return True
+    return True
+
+
 def check_entry(entry) -> None:
     """TypeError / ValueError (one line, naming the field) unless ``entry`` is a usable :class:`Entry`."""
     from ..frames import FRAMES
@@ -261,6 +273,8 @@ def check_entry(entry) -> None:
         raise TypeError(
             f"{what}: default_params must take dtype= (default_params(dtype=None) -> Params): {e}"
         ) from None
+    if entry.advise is not None and not _takes_positional(entry.advise, 3):
+        raise TypeError(f"{what}: advise must take (params, outputs, samples)")
     fields = getattr(p, "_fields", None)
     if fields is None:
         raise TypeError(f"{what}: default_params() must return a NamedTuple of params, got {type(p).__name__}")
@@ -313,7 +327,7 @@ def _wrap(base: Observer, setup: Callable, fields: Tuple[str, ...], name: str) -
     return Observer(init, step, name, output, base.time_reversed)  # same params type: same time reversal
 
 
-_WRAPPED: Dict[str, Observer] = {}
+_WRAPPED: Dict[Any, Observer] = {}
 
 
 def recorded_observer(entry) -> Observer:
@@ -329,6 +343,10 @@ def recorded_observer(entry) -> Observer:
         )
     if e.setup is None:
         return e.make()
-    if e.name not in _WRAPPED:
-        _WRAPPED[e.name] = _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name)
-    return _WRAPPED[e.name]
+    try:  # by the entry, not its name: a changed or re-registered entry gets its own
+        key: Any = (e, hash(e))[0]
+    except TypeError:  # an unregistered entry holding a list
+        key = e.name
+    if key not in _WRAPPED:
+        _WRAPPED[key] = _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name)
+    return _WRAPPED[key]

@@ -887,8 +887,9 @@ def _advise(p: Params, outputs: dict, samples):
     shut = outputs.get("mag_disturbed")
     if shut is None or len(shut) < 2 or float(np.asarray(p.tau_mag_gate)) > 0 or samples.mag is None:
         return None
-    m = np.asarray(samples.mag, float)
-    read = (np.all(np.isfinite(m), axis=-1) & np.any(m != 0, axis=-1))[1:]
+    from ..api import _valid_rows  # the front door's "a reading is present" (imported when it runs: no cycle)
+
+    read = _valid_rows(np.asarray(samples.mag, float))[1:]
     if not read.any():
         return None
     frac = float(np.mean(np.asarray(shut[1:])[read] > 0.5))
