@@ -398,13 +398,18 @@ def run_jaxatt_robust_oof(data_dir, trials, *, retrain, steps, lr, folds_dir):
     return per, info, wall
 
 
-def _offline_params(name, gains):
-    """Params of the offline rows: the robust AHRS's gains file ``gains`` (shipped name or path), VQF's defaults."""
+def _offline_params(name, gains, trials):
+    """Params of the offline rows: the robust AHRS's gains file ``gains`` (shipped name or path), VQF's defaults
+    with its data-dependent ones set from ``trials`` as ``jaxatt.broad_score`` sets them (``ts0``: the first step)."""
     import numpy as np
 
+    from jaxatt.api import recording_defaults_for_trials
     from jaxatt.observers import registry
 
-    return robust_params(gains, "float64") if name == "robust" else registry.get(name).params(dtype=np.float64)
+    if name == "robust":
+        return robust_params(gains, "float64")
+    entry = registry.get(name)
+    return recording_defaults_for_trials(entry, None, entry.params(dtype=np.float64), trials)
 
 
 def _fuse_q(passes, fusion):
@@ -480,7 +485,7 @@ def run_offline(trials, name, gains):
 
     from jaxatt import smoothing
 
-    p = _offline_params(name, gains)
+    p = _offline_params(name, gains, trials)
     passes, padded, first, (fn, item) = offline_passes(trials, name, p)
     per = offline_metrics(passes, padded, trials)
     fwd = offline_metrics(passes, padded, trials, forward=True)
@@ -522,7 +527,7 @@ def run_offline_oof(data_dir, trials, name):
             continue
         gains = str(shipped.path(f"robust_broad_fold{k}.json")) if name == "robust" else "defaults"
         if gains not in cache:  # VQF's defaults: one pair of passes serves both folds
-            params = _offline_params(name, gains)
+            params = _offline_params(name, gains, pool)
             passes, padded, _, call = offline_passes(pool, name, params)
             grid = {g: offline_metrics(passes, padded, pool, g) for g in FUSION_GRID}
             cache[gains] = (grid, offline_metrics(passes, padded, pool, forward=True), params, padded, call)
