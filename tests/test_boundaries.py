@@ -749,7 +749,7 @@ def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues
         broken.write_text(json.dumps(saved))
         with pytest.raises(ValueError, match=match) as e:
             jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(broken), resume=True)
-        assert "\n" not in str(e.value) and "resume: the saved fit state" in str(e.value)
+        assert "\n" not in str(e.value) and f"resume: the saved fit state in {broken} is damaged" in str(e.value)
     resumed = jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(out), resume=True)
     assert resumed.status == "done" and resumed.path == str(out) and not partial.exists()
     assert len(resumed.history) == 4  # steps 1-2 before the interrupt, 3-4 after (equality: tests/test_tune.py)

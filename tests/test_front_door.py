@@ -1200,6 +1200,11 @@ def test_a_registered_users_observer_is_checked_as_one_passed_directly():
         ({"gains": (registry.Gain("kq", "1/s", "typo"),)}, ValueError, r"'kq' is not a field of its params MyParams"),
         ({"gains": ("kp",)}, TypeError, r"gains must be a tuple of registry.Gain"),
         ({"default_params": lambda: MY_PARAMS}, TypeError, r"default_params must take dtype="),
+        (
+            {"default_params": lambda dtype=None: MY_PARAMS._replace(kp=1.0 / 0)},
+            TypeError,
+            r"default_params\(dtype=None\) raised ZeroDivisionError: float division by zero",
+        ),
         ({"make": MY_OBSERVER}, TypeError, r"make must be a function, got Observer"),
         ({"make": lambda: 3}, TypeError, r"make\(\) must return a jaxatt.Observer, got int"),
         ({"frame": "XYZ"}, ValueError, r"frame must be one of ENU, NED, NWU, got 'XYZ'"),

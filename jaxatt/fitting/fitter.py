@@ -214,6 +214,7 @@ def optimize(
     metric_unit: str = "",
     grad: str = "reverse",
     optimizer: str = "adam",
+    resume_from: Optional[str] = None,
 ) -> OptimizeResult:
     """Minimise ``objective(theta, batch) -> (loss, aux)`` with Adam (global-norm clipping ``clip``; learning rate
     ``lr``, constant or ``schedule="cosine"`` decay to lr / 10 over ``steps``).
@@ -225,7 +226,8 @@ def optimize(
     theta with the lowest training loss is kept (the last one is evaluated at the end). ``project(theta)`` is applied
     after each update (bounds). A non-finite loss or gradient skips the update; three in a row stop the loop.
     KeyboardInterrupt ends the loop with status "interrupted" and what was found. ``on_save(result_so_far)`` is
-    called after every step (write files there); ``resume`` (a previous result's ``resume``) continues a loop.
+    called after every step (write files there); ``resume`` (a previous result's ``resume``) continues a loop
+    (``resume_from``: where it was read, named when it is damaged).
     ``aux["metric"]`` (optional scalar) is shown and recorded. History: one dict per step k with ``train_loss``
     / ``train_metric`` of the params *before* update k (on step k's batch), ``grad_norm``, and, when validated,
     ``val_loss`` / ``val_metric`` of the params *after* update k; step 0 holds the start's validation.
@@ -305,8 +307,9 @@ def optimize(
             first = step_done + 1
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
             what = f"no {e}" if isinstance(e, KeyError) else str(e).splitlines()[0] if str(e) else type(e).__name__
+            where = f" in {resume_from}" if resume_from else ""
             raise ValueError(
-                f"resume: the saved fit state is damaged ({what}); fit again without resume (overwrite=True / "
+                f"resume: the saved fit state{where} is damaged ({what}); fit again without resume (overwrite=True / "
                 "--overwrite replaces the file)"
             ) from None
     t_start = time.perf_counter()
@@ -1352,6 +1355,7 @@ def _run(
         metric_unit=metric_unit,
         grad=grad,
         optimizer=optimizer,
+        resume_from=str(out_path) if out_path is not None else None,
     )
     if steps == 0 or (not res.history and out_path is not None):
         on_save(res)

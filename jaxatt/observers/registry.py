@@ -224,14 +224,16 @@ def builtin(entry: Entry) -> bool:
     return entry.name in INDEX and get(entry.name) is entry
 
 
-def _takes_positional(fn, n: int) -> bool:
+def _takes_positional(fn, n: int, **keywords) -> bool:
+    """Whether ``fn`` can be called with ``n`` positional arguments and ``keywords`` (True when it has no
+    signature to tell, e.g. a builtin)."""
     import inspect
 
     try:
-        inspect.signature(fn).bind(*range(n))
+        inspect.signature(fn).bind(*range(n), **keywords)
     except TypeError:
         return False
-    except ValueError:  # no signature (a builtin): cannot tell
+    except ValueError:
         return True
     return True
 
@@ -267,12 +269,12 @@ def check_entry(entry) -> None:
     bad = [g.field for g in entry.gains if g.constraint not in CONSTRAINTS]
     if bad:
         raise ValueError(f"{what}: gain {bad[0]!r} has constraint not in {', '.join(CONSTRAINTS)}")
+    if not callable(entry.default_params) or not _takes_positional(entry.default_params, 0, dtype=None):
+        raise TypeError(f"{what}: default_params must take dtype= (default_params(dtype=None) -> Params)")
     try:
         p = entry.default_params(dtype=None)
-    except TypeError as e:
-        raise TypeError(
-            f"{what}: default_params must take dtype= (default_params(dtype=None) -> Params): {e}"
-        ) from None
+    except Exception as e:
+        raise TypeError(f"{what}: default_params(dtype=None) raised {type(e).__name__}: {e}") from None
     if entry.advise is not None and not _takes_positional(entry.advise, 3):
         raise TypeError(f"{what}: advise must take (params, outputs, samples)")
     fields = getattr(p, "_fields", None)
