@@ -23,6 +23,7 @@ _NAMES = {
     "broad_score": ("api", "broad_score"),
     "fit": ("fitting.fitter", "fit"),
     "monte_carlo": ("api", "monte_carlo"),
+    "ahrs_scenario": ("api", "ahrs_scenario"),
     "Estimate": ("api", "Estimate"),
     "BroadScore": ("api", "BroadScore"),
     "FitResult": ("fitting.fitter", "FitResult"),

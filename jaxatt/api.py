@@ -665,9 +665,10 @@ def filter(
             inclination weighted by the observer's gates (:mod:`jaxatt.smoothing`). ``quat`` is the fused
             estimate; ``outputs`` holds the forward pass's fields as without it, the backward pass's as
             ``backward_<field>`` (in forward time, bias in the forward gyro's sign), ``q_forward``, ``q_backward``
-            and the backward weights ``weight_inclination``, ``weight_heading``. The observer's navigation frame
-            must be fixed by gravity and the magnetic field (every registered 9D observer); a 6D observer
-            (no magnetometer) is smoothed in inclination only.
+            (in ``frame``, as ``quat``) and the backward weights ``weight_inclination``, ``weight_heading``. The
+            observer's navigation frame must be fixed by gravity and the magnetic field (every registered 9D
+            observer); a 6D observer, or a recording without a magnetometer reading, is smoothed in inclination
+            only (the heading is the forward pass's).
         gyr_unit, acc_unit, time_unit: the units ``gyr``, ``acc`` and ``t`` / ``dt`` come in
             (:data:`jaxatt.frames.GYR_UNITS` "rad/s", "deg/s", "dps", "mdps"; :data:`~jaxatt.frames.ACC_UNITS`
             "m/s^2", "g", "mg"; :data:`~jaxatt.frames.TIME_UNITS` "s", "ms", "us", "ns"), converted to rad/s,
@@ -782,6 +783,7 @@ def filter(
             heading=heading,
             seed_bias=spec.seed_bias,
             keep_outputs=True,
+            start_from_present=_starts_from_first_sample(entry),
         )
         fusion = engine.cast_floats(spec.fusion, dt_)
         # the backward pass starts at sample n - 1 (the recording's end), not at the padding's
@@ -818,6 +820,11 @@ def filter(
         )
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
+        for k in ("q_forward", "q_backward"):  # the passes' estimates, in the frame of the fused one
+            if k in extra:
+                extra[k] = frames.change_frame(extra[k], frame, entry.frame)
+    if "backward_t" in extra and extra["backward_t"].shape == ts.shape:
+        extra["backward_t"] = ts  # row k of the backward pass is its estimate at t_k (its own clock runs backwards)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}
     # from estimate 1 on: estimate 0's fields that init's state does not hold are NaN by design (initial_output)
     nonfinite = [
@@ -964,7 +971,15 @@ def broad_score(
     else:
         smoothing.check_time_reversed(obs, p_run, name)
         heading = ("mag" in entry.needs) if entry is not None else True
-        metric = smoothing.broad_metric_fn(obs, trials, hold=hold, dtype=dt_, offline=spec, heading=heading)
+        metric = smoothing.broad_metric_fn(
+            obs,
+            trials,
+            hold=hold,
+            dtype=dt_,
+            offline=spec,
+            heading=heading,
+            start_from_present=_starts_from_first_sample(entry),
+        )
         summary = jax.device_get(metric(p_run, engine.cast_floats(spec.fusion, dt_)))  # not jitted: see there
         res = {tr.name: {m: float(summary[m][i]) for m in B.METRICS} for i, tr in enumerate(trials)}
         name = f"{name}+offline"

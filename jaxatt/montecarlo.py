@@ -36,7 +36,9 @@ __all__ = [
     "monte_carlo",
     "MonteCarloResult",
     "check_dt",
+    "whole_steps",
     "run_keys",
+    "seed_key",
     "INIT_PARAMS_BLOCK",
     "metrics_reducer",
     "default_trace",
@@ -60,6 +62,15 @@ def check_seconds(name: str, value) -> float:
 def check_dt(dt) -> float:
     """``dt`` as a float: finite and > 0 seconds (ValueError otherwise)."""
     return check_seconds("dt", dt)
+
+
+def whole_steps(duration: float, dt: float) -> int:
+    """The number of steps of dt (s) in ``duration`` (s): ValueError naming both unless it is a whole number, to
+    the rounding of a float32 dt (np.float32(0.01) is 0.00999999977 s: 60 s are 6000.0001 of its steps)."""
+    n_steps = check_step_count(duration, dt)
+    if abs(float(duration) / float(dt) - n_steps) > 1e-6 + 5e-7 * n_steps:
+        raise ValueError(f"duration ({duration:g} s) must be a whole number of steps of dt = {float(dt)!r} s")
+    return n_steps
 
 
 def check_duration(duration) -> float:
@@ -292,9 +303,25 @@ def metrics_reducer(
     return engine.Reducer(init, update, finish, trace_every)
 
 
+def seed_key(seed: int) -> jax.Array:
+    """``jax.random.PRNGKey(seed)`` as JAX computes it with float64 on, for any |seed| < 2^63 and either mode:
+    the seed's two 32-bit halves. (With float64 off, ``PRNGKey`` keeps the low 32 bits only, so seed 2^32 would
+    silently repeat seed 0's runs.) Another default PRNG implementation than threefry gets ``PRNGKey(seed)``,
+    and a seed outside [0, 2^31) is refused there unless float64 is on."""
+    seed = check_seed(seed)
+    if jax.config.jax_default_prng_impl == "threefry2x32":
+        return jnp.array([(seed >> 32) & 0xFFFFFFFF, seed & 0xFFFFFFFF], dtype=jnp.uint32)
+    if not (jax.config.jax_enable_x64 or 0 <= seed < 2**31):
+        raise ValueError(
+            f"seed {seed}: with float64 off and the {jax.config.jax_default_prng_impl} PRNG a seed must be in "
+            "[0, 2^31) (JAX keeps its low 32 bits only)"
+        )
+    return jax.random.PRNGKey(seed)
+
+
 def run_keys(seed: int, run_indices) -> jax.Array:
-    """PRNG key of each run: fold_in(PRNGKey(seed), k), independent of batching."""
-    base = jax.random.PRNGKey(check_seed(seed))
+    """PRNG key of each run: fold_in(PRNGKey(seed), k) (:func:`seed_key`), independent of batching."""
+    base = seed_key(seed)
     return jax.vmap(lambda k: jax.random.fold_in(base, k))(jnp.asarray(run_indices, jnp.uint32))
 
 
@@ -326,9 +353,7 @@ def _simulation(
     duration = check_duration(duration)
     trace_every = check_count("trace_every", trace_every or 0)
     engine.check_hold(hold)
-    n_steps = check_step_count(duration, dt)
-    if abs(duration / dt - n_steps) > 1e-6:
-        raise ValueError(f"duration ({duration:g} s) must be a whole number of steps of dt = {dt:g} s")
+    n_steps = whole_steps(duration, dt)
     if trace_every and engine.BLOCK % trace_every:
         raise ValueError(f"trace_every must divide {engine.BLOCK}, got {trace_every}")
     if trace_every > n_steps:
@@ -549,6 +574,12 @@ def monte_carlo(
     runs = check_count("runs", runs, 1, MAX_RUNS)
     chunk = check_count("chunk", chunk, 1)
     seed = check_seed(seed)
+    duration = check_duration(duration)
+    if isinstance(window_start, bool) or not isinstance(window_start, (int, float, np.integer, np.floating)):
+        raise ValueError(f"window_start must be a number of seconds, got {window_start!r}")
+    if not 0.0 <= float(window_start) < duration:  # NaN too: an empty window would give metrics of 0
+        raise ValueError(f"window_start ({float(window_start)} s) must lie inside the run [0, {duration}) s")
+    _check_previous(previous, runs, trace_every)
     engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
@@ -626,6 +657,31 @@ def monte_carlo(
             raise
         return result(False)
     return result(True)
+
+
+def _check_previous(previous, runs: int, trace_every: int) -> None:
+    """ValueError (one line) unless ``previous`` is None or a :class:`MonteCarloResult` this call can continue:
+    distinct run indices in [0, runs), traces kept when ``trace_every`` asks for them. (Its seed, duration and
+    scenario are not stored in it: resuming with other arguments is the caller's to avoid.)"""
+    if previous is None:
+        return
+    if not isinstance(previous, MonteCarloResult):
+        raise ValueError(f"previous must be the MonteCarloResult of an interrupted call, got {type(previous).__name__}")
+    idx = np.asarray(previous.run_indices)
+    if idx.ndim != 1 or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
+        raise ValueError(f"previous.run_indices must be a 1-D array of run indices, got {idx!r}")
+    if len(np.unique(idx)) != len(idx):
+        raise ValueError("previous.run_indices repeats a run: it is not the result of one interrupted call")
+    if idx.size and not (idx.min() >= 0 and idx.max() < runs):
+        raise ValueError(
+            f"previous holds run {int(idx.max()) if idx.max() >= runs else int(idx.min())}, outside "
+            f"the runs 0 ... {runs - 1} asked for now"
+        )
+    if idx.size and bool(trace_every) != (previous.traces is not None):
+        raise ValueError(
+            f"previous {'has no' if trace_every else 'has'} traces, and this call asks for "
+            f"{'traces' if trace_every else 'none'} (trace_every={trace_every}): continue it with its own trace_every"
+        )
 
 
 def merge_results(a: MonteCarloResult, b: MonteCarloResult, complete: bool) -> MonteCarloResult:

@@ -217,7 +217,22 @@ def reverse_indices(n: int, length, hold: str = "next"):
     return meas, gyr
 
 
-def reverse_item(item: dict, lengths, hold: str = "next", bias=None) -> dict:
+def _present(a, length):
+    """(T,) True where a (T, 3) reading is present within the first ``length`` rows: finite and not all zero (NaN
+    or zero rows mark a missing reading, as on the forward pass)."""
+    ok = jnp.all(jnp.isfinite(a), axis=-1) & jnp.any(a != 0, axis=-1)
+    return ok & (jnp.arange(a.shape[0]) < length)
+
+
+def _start_from_present(a, length):
+    """``a`` (T, 3) with a missing row 0 replaced by its first present reading (zeros when none is present): the
+    start of an observer that sets itself up from its first sample (TRIAD, field references) never reads NaN."""
+    ok = _present(a, length)
+    first = jnp.where(jnp.any(ok), a[jnp.argmax(ok)], jnp.zeros_like(a[0]))
+    return a.at[0].set(jnp.where(ok[0], a[0], first))
+
+
+def reverse_item(item: dict, lengths, hold: str = "next", bias=None, start_from_present: bool = False) -> dict:
     """The engine's batch item (:class:`jaxatt.engine.Recorded`: ``samples`` (B, T, ...) ImuSample, ``dt`` (B,)
     or (B, T)) of the time-reversed recordings, each reversed within its ``lengths`` (B,) real samples
     (:func:`reverse_indices`): acc and mag in reverse order, gyro negated (rad/s, sensor frame: the sensor turns
@@ -225,7 +240,10 @@ def reverse_item(item: dict, lengths, hold: str = "next", bias=None) -> dict:
     t_{L-1-j} for per-step dt (``dt`` (B, T), dt'_j = dt_{L-j}), unchanged for a constant dt. ``truth`` is dropped.
 
     ``bias``: optional (B, 3) gyro bias (rad/s, sensor frame) subtracted from the gyro before it is reversed
-    (e.g. the forward pass's final estimate: the backward pass then starts with it instead of zero)."""
+    (e.g. the forward pass's final estimate: the backward pass then starts with it instead of zero).
+    ``start_from_present``: a missing acc / mag reading at the recording's end (the backward pass's start) is
+    replaced by that sensor's last present one, as :func:`jaxatt.api.start_from_valid` does for the forward
+    pass's start (for observers set up from their first sample)."""
     samples = item["samples"]
     if not isinstance(samples, ImuSample):
         raise ValueError("the offline mode needs ImuSample recordings (t, gyr, acc, mag)")
@@ -241,7 +259,10 @@ def reverse_item(item: dict, lengths, hold: str = "next", bias=None) -> dict:
             dt = jnp.take(dt, jnp.clip(length - jnp.arange(n), 1, length - 1), axis=0)
         else:
             t = s.t
-        return ImuSample(t, gyr, take(s.acc), take(s.mag)), dt
+        acc, mag = take(s.acc), take(s.mag)
+        if start_from_present:
+            acc, mag = (None if a is None else _start_from_present(a, length) for a in (acc, mag))
+        return ImuSample(t, gyr, acc, mag), dt
 
     bs = None if bias is None else jnp.asarray(bias)
     rev, dt = jax.vmap(one, in_axes=(0, 0, 0, None if bs is None else 0))(samples, item["dt"], jnp.asarray(lengths), bs)
@@ -426,6 +447,9 @@ class Passes(NamedTuple):
         meas: (B, T) the row of the backward records that holds each forward time (:func:`reverse_indices`).
         seed_forward, seed_backward: (B, 3) the biases (rad/s, forward gyro's sign) the passes were started with
             (``seed_bias``), else None.
+        mag_present: (B,) whether each recording has a magnetometer reading (a present one: finite, not all zero),
+            or None for recordings without a mag field: without one neither pass has an absolute heading, and
+            :func:`fuse_passes` fuses that recording in inclination only.
     """
 
     forward: Any
@@ -435,6 +459,7 @@ class Passes(NamedTuple):
     meas: Any
     seed_forward: Any = None
     seed_backward: Any = None
+    mag_present: Any = None
 
 
 def reversed_params(observer, params):
@@ -475,6 +500,7 @@ def passes_fn(
     seed_bias: bool = False,
     keep_outputs: bool = False,
     segment: int = 0,
+    start_from_present: bool = False,
 ):
     """``fn(params, item, lengths) -> Passes``: the forward and backward passes of ``observer`` over a batch of
     recordings (each pass one :func:`jaxatt.engine.batch_fn` scan over the whole batch), before the fusion.
@@ -491,7 +517,7 @@ def passes_fn(
     def fn(params, item, lengths):
         lengths = jnp.asarray(lengths)
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None}
-        rev = reverse_item(item, lengths, hold)
+        rev = reverse_item(item, lengths, hold, start_from_present=start_from_present)
         fwd = run(None, params, item).records
         bwd = run(None, reversed_params(observer, params), rev).records
         b_fwd = b_bwd = None
@@ -502,7 +528,7 @@ def passes_fn(
             b_bwd = _last(fwd["bias"], lengths)
             s = item["samples"]
             item = {**item, "samples": s._replace(gyr=s.gyr - b_fwd[:, None, :].astype(s.gyr.dtype))}
-            rev = reverse_item({**item, "samples": s}, lengths, hold, bias=b_bwd)
+            rev = reverse_item({**item, "samples": s}, lengths, hold, bias=b_bwd, start_from_present=start_from_present)
             fwd = run(None, params, item).records
             bwd = run(None, reversed_params(observer, params), rev).records
         n = fwd["q"].shape[1]
@@ -512,7 +538,9 @@ def passes_fn(
         dt_b = jnp.asarray(rev["dt"], dtype)
         if not per_step_dt:
             dt_f, dt_b = dt_f[:, None], dt_b[:, None]
-        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd)
+        mag = item["samples"].mag
+        mag_present = None if mag is None else jax.vmap(lambda m, n: jnp.any(_present(m, n)))(mag, lengths)
+        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd, mag_present)
 
     return fn
 
@@ -540,7 +568,10 @@ def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
     q_f = fwd["q"]
     q_b = _take_time(bwd["q"], meas)
     w = var_f / (var_f + var_b)
-    q = fuse(q_f, q_b, w[..., 0], w[..., 1]) if heading else fuse_inclination(q_f, q_b, w[..., 0])
+    q = fuse_inclination(q_f, q_b, w[..., 0])
+    if heading:  # a recording without a magnetometer reading has no absolute heading in either pass
+        q9 = fuse(q_f, q_b, w[..., 0], w[..., 1])
+        q = q9 if passes.mag_present is None else jnp.where(passes.mag_present[:, None, None], q9, q)
     out_f = out_b = None
     if "out" in fwd:
         b_fwd, b_bwd = passes.seed_forward, passes.seed_backward
@@ -569,6 +600,7 @@ def smoother_fn(
     seed_bias: bool = False,
     keep_outputs: bool = False,
     segment: int = 0,
+    start_from_present: bool = False,
 ):
     """``fn(params, fusion, item, lengths) -> Smoothed``: the forward and backward passes of ``observer``
     (:func:`passes_fn`) and their fusion per sample (:func:`fuse_passes`). Pure JAX: jit it, differentiate it in
@@ -590,6 +622,8 @@ def smoother_fn(
         keep_outputs: also return every output field of both passes.
         segment: checkpointed segment length of the scans (:func:`jaxatt.engine.segment_length`; 0 = none):
             reverse mode then stores one state per segment.
+        start_from_present: the backward pass starts from the last present acc / mag reading when the last row
+            misses one (:func:`reverse_item`; for observers set up from their first sample).
     ``item`` is :class:`jaxatt.engine.Recorded`'s batch (``samples``: :class:`jaxatt.types.ImuSample` of
     (B, T, ...) arrays in the sensor frame, rad/s, m/s^2, any field unit; ``dt``; ``truth`` ignored);
     ``lengths`` (B,) the real samples of each recording, the rest padding that repeats the last sample
@@ -605,6 +639,7 @@ def smoother_fn(
         seed_bias=seed_bias,
         keep_outputs=keep_outputs,
         segment=segment,
+        start_from_present=start_from_present,
     )
 
     def fn(params, fusion, item, lengths):
@@ -631,7 +666,15 @@ def compiled(observer, n_steps: int, **static):
 # BROAD
 # ------------------------------------------------------------------------------------------------------------
 def broad_metric_fn(
-    observer, trials, *, hold: str = "next", dtype=None, offline=True, heading: bool = True, segment: int = 0
+    observer,
+    trials,
+    *,
+    hold: str = "next",
+    dtype=None,
+    offline=True,
+    heading: bool = True,
+    segment: int = 0,
+    start_from_present: bool = False,
 ):
     """``fn(params, fusion) -> {metric: (B,) RMSE deg}``: the BROAD metric (:data:`jaxatt.data.broad.METRICS`) of
     the offline estimate of ``observer`` on ``trials`` (padded, all in one batch), as a pure JAX function of the
@@ -660,6 +703,7 @@ def broad_metric_fn(
         heading=heading,
         seed_bias=spec.seed_bias,
         segment=segment,
+        start_from_present=start_from_present,
     )
     truth = item["truth"]
 

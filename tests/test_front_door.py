@@ -844,6 +844,59 @@ def test_weakly_typed_gains_reuse_the_compiled_filter():
     assert scan._cache_size() == size  # without the cast: one more program per weak type
 
 
+def test_seeds_beyond_32_bits_give_their_own_runs_with_float64_off():
+    """Run k of seed s uses fold_in(PRNGKey(s), k) with PRNGKey(s) as JAX computes it in float64 mode, also with
+    float64 off, where PRNGKey keeps the low 32 bits only (seed 2^32 silently repeated seed 0's runs)."""
+    seeds = [0, 1, 2**31, 2**32, 2**40 + 5, 2**63 - 1, -1, -(2**63)]
+    for s in seeds:  # the tests run with float64 on
+        np.testing.assert_array_equal(montecarlo.seed_key(s), jax.random.PRNGKey(s))
+    with jax.enable_x64(False):
+        assert len({np.asarray(montecarlo.seed_key(s)).tobytes() for s in seeds}) == len(seeds)
+        assert not np.array_equal(montecarlo.run_keys(2**32, [0, 1]), montecarlo.run_keys(0, [0, 1]))
+        assert jaxatt.ahrs_scenario is jaxatt.api.ahrs_scenario  # the scenario is at the top level too
+
+
+def test_the_monte_carlo_engine_refuses_an_empty_window_and_a_previous_result_it_cannot_continue():
+    """montecarlo.monte_carlo (the engine under jaxatt.monte_carlo and the studies) checks what the front door
+    checks: a window_start outside the run gave metrics of 0 over an empty window; a ``previous`` result with runs
+    beyond ``runs``, a repeated run or other traces was merged without a word."""
+    from jaxatt import studies
+
+    s = studies.get("complementary").setup(duration=2.0)
+    kw = dict(runs=2, duration=2.0, dt=s.dt, seed=3, errors_fn=s.errors_fn)
+    for ws in (5.0, float("nan"), -1.0):
+        with pytest.raises(ValueError, match=r"window_start \(.* s\) must lie inside the run \[0, 2.0\) s"):
+            montecarlo.monte_carlo(s.scenario, s.observer, s.params, window_start=ws, **kw)
+    done = montecarlo.monte_carlo(s.scenario, s.observer, s.params, **kw)
+    assert done.complete and list(done.run_indices) == [0, 1]
+    for previous, match in (
+        ({}, "previous must be the MonteCarloResult of an interrupted call, got dict"),
+        (done._replace(run_indices=np.array([0, 0])), "repeats a run"),
+        (done._replace(run_indices=np.array([0, 3])), r"previous holds run 3, outside the runs 0 \.\.\. 1"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            montecarlo.monte_carlo(s.scenario, s.observer, s.params, previous=previous, **kw)
+    with pytest.raises(ValueError, match=r"previous has no traces, and this call asks for traces"):
+        montecarlo.monte_carlo(s.scenario, s.observer, s.params, previous=done, trace_every=100, **kw)
+    # a finished result continued is itself
+    again = montecarlo.monte_carlo(s.scenario, s.observer, s.params, previous=done, **kw)
+    assert again.complete and {k: v.tolist() for k, v in again.per_run.items()} == {
+        k: v.tolist() for k, v in done.per_run.items()
+    }
+
+
+def test_a_duration_of_whole_float32_steps_is_accepted_and_a_fit_refuses_a_fractional_one():
+    """A float32 dt (np.float32(0.01) = 0.00999999977 s) divides 60 s to its rounding (it was refused as 'not a
+    whole number of steps of dt = 0.01 s'); a fit on a study refuses 4 s of 0.3-s steps (it trained on 13 steps,
+    3.9 s, and recorded 4 s)."""
+    assert montecarlo.whole_steps(60.0, np.float32(0.01)) == 6000
+    assert montecarlo.whole_steps(3600.0, np.float32(0.01)) == 360000
+    with pytest.raises(ValueError, match=r"duration \(1 s\) must be a whole number of steps of dt = 0.3 s"):
+        montecarlo.whole_steps(1.0, 0.3)
+    with pytest.raises(ValueError, match=r"duration \(4 s\) must be a whole number of steps of dt = 0.3 s"):
+        jaxatt.fit(None, None, "complementary", steps=1, config={"duration": 4.0, "dt": 0.3}, train_runs=2, val_runs=0)
+
+
 def test_weakly_typed_gains_reuse_the_compiled_monte_carlo():
     """The same for a Monte Carlo: a weakly typed gain runs the program compiled for the typed one, same numbers."""
     from jaxatt import studies

@@ -1072,7 +1072,7 @@ def _fit_study(
     )
     if objective not in ("montecarlo", "varfree"):
         raise ValueError(f"objective must be 'montecarlo' or 'varfree', got {objective!r}")
-    n_steps = int(round(s.duration / s.dt))
+    n_steps = montecarlo.whole_steps(s.duration, s.dt)
     if objective == "varfree":
         from . import varfree
 
