@@ -820,9 +820,9 @@ def filter(
         )
     if entry is not None and entry.frame != frame:
         q = frames.change_frame(q, frame, entry.frame)
-        for k in ("q_forward", "q_backward"):  # the passes' estimates, in the frame of the fused one
-            if k in extra:
-                extra[k] = frames.change_frame(extra[k], frame, entry.frame)
+        for pass_q in ("q_forward", "q_backward"):  # the passes' estimates, in the frame of the fused one
+            if pass_q in extra:
+                extra[pass_q] = frames.change_frame(extra[pass_q], frame, entry.frame)
     if "backward_t" in extra and extra["backward_t"].shape == ts.shape:
         extra["backward_t"] = ts  # row k of the backward pass is its estimate at t_k (its own clock runs backwards)
     outputs = {k: np.asarray(v) for k, v in _as_dict(out).items()}

@@ -309,11 +309,11 @@ def seed_key(seed: int) -> jax.Array:
     silently repeat seed 0's runs.) Another default PRNG implementation than threefry gets ``PRNGKey(seed)``,
     and a seed outside [0, 2^31) is refused there unless float64 is on."""
     seed = check_seed(seed)
-    if jax.config.jax_default_prng_impl == "threefry2x32":
+    if jax.config.values["jax_default_prng_impl"] == "threefry2x32":
         return jnp.array([(seed >> 32) & 0xFFFFFFFF, seed & 0xFFFFFFFF], dtype=jnp.uint32)
-    if not (jax.config.jax_enable_x64 or 0 <= seed < 2**31):
+    if not (jax.config.values["jax_enable_x64"] or 0 <= seed < 2**31):
         raise ValueError(
-            f"seed {seed}: with float64 off and the {jax.config.jax_default_prng_impl} PRNG a seed must be in "
+            f"seed {seed}: with float64 off and the {jax.config.values['jax_default_prng_impl']} PRNG a seed must be in "
             "[0, 2^31) (JAX keeps its low 32 bits only)"
         )
     return jax.random.PRNGKey(seed)
