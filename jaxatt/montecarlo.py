@@ -313,8 +313,8 @@ def seed_key(seed: int) -> jax.Array:
         return jnp.array([(seed >> 32) & 0xFFFFFFFF, seed & 0xFFFFFFFF], dtype=jnp.uint32)
     if not (jax.config.values["jax_enable_x64"] or 0 <= seed < 2**31):
         raise ValueError(
-            f"seed {seed}: with float64 off and the {jax.config.values['jax_default_prng_impl']} PRNG a seed must be in "
-            "[0, 2^31) (JAX keeps its low 32 bits only)"
+            f"seed {seed}: with float64 off and the {jax.config.values['jax_default_prng_impl']} PRNG a seed must "
+            "be in [0, 2^31) (JAX keeps its low 32 bits only)"
         )
     return jax.random.PRNGKey(seed)
 
