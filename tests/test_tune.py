@@ -508,3 +508,47 @@ def test_fit_refuses_a_step_beyond_rk4s_stability_before_computing(tmp_path):
     with pytest.raises(ValueError, match=r"dt = 0.03 s is too long for alpha1 = 100 .*dt <= 0.0278"):
         fitter.fit(None, None, "batista-ges", steps=1, out=str(out), config={"dt": 0.03, "duration": 30.0})
     assert not out.exists()
+
+
+@pytest.mark.parametrize("where", ["drawing the batch", "the last step's evaluation"])
+def test_a_fit_resumed_after_an_interrupt_or_extended_ends_as_the_uninterrupted_one(where):
+    """The saved data order is the one after the last recorded step: a step interrupted after drawing its batch
+    (a Ctrl-C during its gradient), or a finished fit's evaluation of its last update, does not use up batches
+    of the resumed run (before, the resumed steps trained on other minibatches than the uninterrupted fit)."""
+    data = jnp.asarray(np.random.default_rng(0).normal(size=8))
+
+    def objective(theta, idx):
+        return jnp.mean((theta["x"] - data[idx]) ** 2), {}
+
+    calls = []
+
+    def take(idx, stop_at=None):
+        calls.append(1)
+        if len(calls) == stop_at:
+            raise KeyboardInterrupt
+        return jnp.asarray(idx)
+
+    kw = dict(lr=0.1, clip=None)
+    full = fitter.optimize(objective, {"x": jnp.asarray(3.0)}, steps=6, sampler=fitter.Sampler(8, 2), take=take, **kw)
+    calls.clear()
+    if where == "drawing the batch":  # interrupted in step 4, its batch drawn
+        first = fitter.optimize(
+            objective,
+            {"x": jnp.asarray(3.0)},
+            steps=6,
+            sampler=fitter.Sampler(8, 2),
+            take=lambda idx: take(idx, stop_at=4),
+            **kw,
+        )
+        assert first.status == "interrupted" and len(first.history) == 3
+    else:  # a finished 3-step fit (its last update evaluated on one more batch), extended to 6
+        first = fitter.optimize(
+            objective, {"x": jnp.asarray(3.0)}, steps=3, sampler=fitter.Sampler(8, 2), take=take, **kw
+        )
+        assert first.status == "done"
+    rest = fitter.optimize(
+        objective, {"x": jnp.asarray(3.0)}, steps=6, sampler=fitter.Sampler(8, 2), take=take, resume=first.resume, **kw
+    )
+    loss = lambda r: [h["train_loss"] for h in r.history]  # noqa: E731
+    np.testing.assert_allclose(loss(rest), loss(full), rtol=1e-14)
+    np.testing.assert_allclose(float(rest.last_theta["x"]), float(full.last_theta["x"]), rtol=1e-14)

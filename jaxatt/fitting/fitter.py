@@ -332,11 +332,14 @@ def optimize(
             "n_nonfinite": n_nonfinite,
             "best_train": best_train if math.isfinite(best_train) else None,
             "history": history,
-            "sampler": sampler.state(),
+            # the data order after the last recorded step: a step interrupted after drawing its batch, and the
+            # last step's evaluation, do not use up batches of the resumed run
+            "sampler": sampler_state,
         }
         return OptimizeResult(best_theta, theta, best_step, best_val, start_val, history, status, state)
 
     status = "done"
+    sampler_state = sampler.state()
     try:
         if val_fn is not None and not resume:
             start_val, start_metric = validate(theta)
@@ -387,6 +390,7 @@ def optimize(
                     bad += 1
             rec.update(step_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - t_start)
             history.append(rec)
+            sampler_state = sampler.state()
             if callback is not None:
                 callback(
                     {
