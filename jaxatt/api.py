@@ -1068,6 +1068,8 @@ def monte_carlo(
     trace_every: int = 0,
     progress=None,
     devices=None,
+    previous=None,
+    on_chunk=None,
 ):
     """Monte Carlo of an observer (registered or your own) on a simulated AHRS (:func:`ahrs_scenario` by default,
     ENU): ``runs`` runs of ``duration`` s at 1/``dt`` Hz, run k from key fold_in(PRNGKey(seed), k), metrics reduced
@@ -1076,8 +1078,13 @@ def monte_carlo(
     ``devices``: None (default) splits the runs of each chunk over every visible device, an int over that many
     (1: one device); the result does not depend on it beyond rounding (:func:`jaxatt.montecarlo.monte_carlo`).
     Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
-    are not finite."""
+    are not finite. Interrupted (KeyboardInterrupt), it returns the runs finished so far with ``complete=False``
+    and a warning: pass that result as ``previous`` to a call with the same arguments to run only the rest.
+    ``on_chunk(result_so_far)`` is called after each chunk of runs (save it there)."""
     from . import montecarlo as mc
+
+    if dtype is None and not jax.config.values["jax_enable_x64"] and params is not None and not isinstance(params, str):
+        compute_dtype(*(a for a in jax.tree_util.tree_leaves(params) if hasattr(a, "dtype")), what="params")
 
     dt_ = compute_dtype(dtype=dtype) if dtype is not None else np.dtype(jnp.result_type(float))
     if isinstance(observer, (str, registry.Entry)) and not registry.get(observer).recorded:
@@ -1126,8 +1133,16 @@ def monte_carlo(
         dtype=dt_,
         progress=progress,
         devices=devices,
+        previous=previous,
+        on_chunk=on_chunk,
     )
     bad = res.first_nonfinite()
     if bad:
         raise FloatingPointError(f"{name}: {bad} (seed {seed})")
+    if not res.complete:
+        warnings.warn(
+            f"{name}: interrupted after {len(res.run_indices)} of {runs} runs (result.complete is False): pass this "
+            "result as previous= to the same call to run the rest",
+            stacklevel=2,
+        )
     return res

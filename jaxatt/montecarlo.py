@@ -639,10 +639,6 @@ def monte_carlo(
             with _progress.active(prog):
                 res = _sharding.to_host(fn(scenario, params, keys)[:2])
             summ, trace = res
-            if prog is not None:
-                prog.runs_done += len(idx)
-                prog.chunk_runs = 0
-                prog.report(0)
             first_bad.append(np.asarray(summ.pop(FIRST_NONFINITE), float)[: len(idx)])
             for k, v in summ.items():
                 per_run.setdefault(k, []).append(np.asarray(v)[: len(idx)])
@@ -650,6 +646,10 @@ def monte_carlo(
                 for k, v in trace.items():
                     traces.setdefault(k, []).append(np.asarray(v)[: len(idx)])
             done.extend(idx.tolist())
+            if prog is not None:  # after the chunk is kept: an interrupt in the reporter loses nothing
+                prog.runs_done += len(idx)
+                prog.chunk_runs = 0
+                prog.report(0)
             if on_chunk is not None:
                 on_chunk(result(len(done) == len(todo)))
     except KeyboardInterrupt:

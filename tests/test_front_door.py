@@ -897,6 +897,39 @@ def test_a_duration_of_whole_float32_steps_is_accepted_and_a_fit_refuses_a_fract
         jaxatt.fit(None, None, "complementary", steps=1, config={"duration": 4.0, "dt": 0.3}, train_runs=2, val_runs=0)
 
 
+def test_an_interrupted_monte_carlo_warns_and_continues_from_its_result():
+    """jaxatt.monte_carlo interrupted (here from on_chunk, or from the progress reporter at a chunk's end) returns
+    the finished runs with a warning (it was silent), and ``previous=`` runs only the rest: the same numbers as
+    one uninterrupted call. (An interrupt in the reporter dropped the chunk just finished.)"""
+    kw = dict(runs=4, duration=0.5, chunk=2, seed=1)
+    full = jaxatt.monte_carlo("mahony", **kw)
+
+    def stop(_):
+        raise KeyboardInterrupt
+
+    def stop_after_two(info):
+        if info["runs_done"] >= 2:
+            raise KeyboardInterrupt
+
+    for how in (dict(on_chunk=stop), dict(progress=stop_after_two)):
+        with pytest.warns(UserWarning, match=r"interrupted after 2 of 4 runs .* previous="):
+            part = jaxatt.monte_carlo("mahony", **kw, **how)
+        assert not part.complete and list(part.run_indices) == [0, 1], how
+        rest = jaxatt.monte_carlo("mahony", **kw, previous=part)
+        assert rest.complete and list(rest.run_indices) == [0, 1, 2, 3]
+        for k, v in full.per_run.items():
+            np.testing.assert_array_equal(rest.per_run[k], v, err_msg=k)
+
+
+def test_float64_gains_of_a_monte_carlo_without_x64_are_warned_about():
+    """As jaxatt.filter warns for float64 data: float64 gains computed in float32 (x64 off) are said."""
+    with jax.enable_x64(False):
+        p64 = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), registry.get("mahony").default_params())
+        with pytest.warns(UserWarning, match="float64 params is computed in float32 because JAX's x64 mode is off"):
+            res = jaxatt.monte_carlo("mahony", p64, runs=2, duration=0.5)
+        assert res.per_run["mean_angle_error_deg"].dtype == np.float32
+
+
 def test_weakly_typed_gains_reuse_the_compiled_monte_carlo():
     """The same for a Monte Carlo: a weakly typed gain runs the program compiled for the typed one, same numbers."""
     from jaxatt import studies
