@@ -1071,6 +1071,11 @@ def test_imu_sample_is_the_users_input_type():
         ({"tune": "beta"}, r"tune must be a list of gain names, e.g. \['beta'\]"),
         ({"patience": -1}, "patience must be"),
         ({"steps": True}, "steps must be an integer"),
+        ({"lr": True}, "lr must be a positive number, got True"),
+        ({"batch": 1.5}, "batch must be a whole number, got 1.5"),
+        ({"batch": True}, "batch must be a whole number, got True"),
+        ({"batch": "2"}, "batch must be a whole number, got '2'"),
+        ({"lr": np.float32(0.05), "val_every": 0}, "val_every must be"),  # a numpy lr passes (it was refused)
     ],
 )
 def test_fit_arguments_of_the_wrong_kind_are_named(kwargs, match):

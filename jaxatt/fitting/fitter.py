@@ -681,9 +681,17 @@ def fit(
         raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     if lr is None:
         lr = 0.05 if optimizer == "adam" else 1.0
-    if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+    real = (int, float, np.integer, np.floating)
+    if isinstance(lr, bool) or not (isinstance(lr, real) and math.isfinite(lr) and lr > 0):
         raise ValueError(f"lr must be a positive number, got {lr!r}")
-    if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
+    lr = float(lr)
+    if batch is not None:
+        from ..montecarlo import check_count
+
+        batch = check_count("batch", batch, 1)
+    if clip is not None and (
+        isinstance(clip, bool) or not (isinstance(clip, real) and math.isfinite(clip) and clip > 0)
+    ):
         raise ValueError(
             f"clip must be a positive number (the largest gradient norm) or None (no clipping), got {clip!r}"
         )
