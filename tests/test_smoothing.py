@@ -158,6 +158,27 @@ def test_a_missing_reading_at_the_end_starts_the_backward_pass_from_the_last_pre
         assert _rms_deg(r_true, est.quat) < _rms_deg(r_true, est.outputs["q_forward"]), name
 
 
+def test_broad_score_offline_of_a_trial_ending_without_magnetometer_readings(sim):
+    """The same start from the last present reading when a trial is scored offline (broad_score and `jaxatt broad
+    --offline`): a trial whose last 3 magnetometer rows are missing scores as one whose last rows repeat the last
+    present reading (it scored 26.7 deg against 1.0)."""
+    from jaxatt.data import broad
+
+    g, a, m, r_true = sim
+    q_true = np.asarray(so3.matrix_to_quat(r_true))
+    t = np.arange(len(g)) * 0.01
+
+    def trial(mag):
+        samples = jaxatt.ImuSample(t, g, a, mag)
+        return broad.Trial("01_sim", samples, q_true, np.ones(len(g), bool), 100.0, "undisturbed")
+
+    m_nan, m_rep = m.copy(), m.copy()
+    m_nan[-3:], m_rep[-3:] = np.nan, m[-4]
+    got, ref = (jaxatt.broad_score("robust", None, [trial(x)], offline=True) for x in (m_nan, m_rep))
+    assert got.trials["01_sim"].total_rmse_deg == pytest.approx(ref.trials["01_sim"].total_rmse_deg, abs=0.02)
+    assert got.trials["01_sim"].total_rmse_deg < 2.0
+
+
 @pytest.mark.parametrize("mag", ["none", "all missing"])
 def test_a_9d_observer_without_magnetometer_readings_is_smoothed_in_inclination_only(sim, mag):
     """Without any magnetometer reading neither pass has an absolute heading: the fused estimate keeps the forward
