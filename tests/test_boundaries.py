@@ -750,6 +750,11 @@ def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues
         with pytest.raises(ValueError, match=match) as e:
             jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(broken), resume=True)
         assert "\n" not in str(e.value) and f"resume: the saved fit state in {broken} is damaged" in str(e.value)
+    # the arithmetic is a setting of the fit: resuming a float64 fit in float32 mixed the two in one history
+    with pytest.raises(
+        ValueError, match=r"resume: setting 'dtype' differs from the saved fit \('float64' vs 'float32'\)"
+    ):
+        jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(out), resume=True, dtype="float32")
     resumed = jaxatt.fit("madgwick", None, trials, steps=4, lr=0.1, out=str(out), resume=True)
     assert resumed.status == "done" and resumed.path == str(out) and not partial.exists()
     assert len(resumed.history) == 4  # steps 1-2 before the interrupt, 3-4 after (equality: tests/test_tune.py)

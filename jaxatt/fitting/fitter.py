@@ -1102,6 +1102,7 @@ def _fit_study(
             "steps": int(steps),
             "seed": seed,
             "lr": lr,
+            "dtype": np.dtype(dtype or jnp.result_type(float)).name,
             "clip": clip,
             "schedule": schedule,
             "loss": spec.describe(),
@@ -1171,6 +1172,7 @@ def _fit_study(
         "val_every": val_every,
         "patience": patience,
         "lr": lr,
+        "dtype": np.dtype(dtype or jnp.result_type(float)).name,
         "clip": clip,
         "schedule": schedule,
         "loss": spec.describe(),
@@ -1289,6 +1291,8 @@ def _run(
             "masks",
         ] + (["steps"] if settings.get("schedule") == "cosine" else [])
         old = {"optimizer": "adam", **old}  # files written before the choice existed: Adam
+        if "dtype" in old:  # files written before it was saved: not compared
+            keys.append("dtype")
         for k in keys + ["optimizer"]:
             if old.get(k) != settings.get(k):
                 why = (
