@@ -759,3 +759,50 @@ def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues
     assert resumed.status == "done" and resumed.path == str(out) and not partial.exists()
     assert len(resumed.history) == 4  # steps 1-2 before the interrupt, 3-4 after (equality: tests/test_tune.py)
     assert json.loads(out.read_text())["status"] == "done"
+
+
+def test_a_complete_result_survives_an_interrupted_resume_and_a_study_of_several_observers_has_no_stale_metrics(
+    tmp_path, monkeypatch
+):
+    """A complete JSON is replaced only by a complete one, with --resume too (an interrupted resume replaced it with
+    its partial result). A study of several observers has metrics per observer only (the top-level ``metrics``
+    were the first observer's, written while it alone had runs, and a resumed file had none)."""
+    from jaxatt import montecarlo, studies
+
+    study = studies.get("nlio-case1")
+    cfg = study.config(duration=2.0)
+    obs = dict(list(study.observers(cfg).items())[:2])
+    out = tmp_path / "r.json"
+    kw = dict(cfg=cfg, json_path=str(out), quiet=True, observers=obs, chunk=1)
+    studies.reproduce(study, runs=1, **kw)
+    done = json.loads(out.read_text())
+    assert done["complete"] and "metrics" not in done and all("metrics" in e for e in done["observers"].values())
+    finished = out.read_bytes()
+    real, calls = montecarlo.monte_carlo, []
+
+    def interrupt_after_a_chunk_of(call):  # Ctrl-C once the call-th Monte Carlo has finished a chunk
+        def mc(*a, **k):
+            calls.append(1)
+            if len(calls) == call:
+                inner = k["on_chunk"]
+
+                def on_chunk(res):
+                    inner(res)
+                    raise KeyboardInterrupt
+
+                k = {**k, "on_chunk": on_chunk}
+            return real(*a, **k)
+
+        return mc
+
+    monkeypatch.setattr(montecarlo, "monte_carlo", interrupt_after_a_chunk_of(2))  # in the second observer
+    assert not studies.reproduce(study, runs=2, **kw)["complete"]
+    assert out.read_bytes() == finished
+    calls.clear()
+    monkeypatch.setattr(montecarlo, "monte_carlo", interrupt_after_a_chunk_of(1))  # the first left to run
+    assert not studies.reproduce(study, runs=2, resume=True, **kw)["complete"]
+    assert out.read_bytes() == finished
+    monkeypatch.setattr(montecarlo, "monte_carlo", real)
+    assert studies.reproduce(study, runs=2, resume=True, **kw)["complete"]
+    resumed = json.loads(out.read_text())
+    assert resumed["complete"] and resumed["runs_done"] == 2 and "metrics" not in resumed

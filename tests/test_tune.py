@@ -381,6 +381,13 @@ def test_evaluate_interrupted_in_the_paper_comparison_is_incomplete_and_resumes(
     saved = json.loads(out.read_text())
     assert saved["complete"] and "comparison" in saved
     assert len(calls) == 1  # only the paper's gains ran: the tuned runs came from the runs file
+    # run again and interrupted in the comparison: the complete result stays (it was replaced, first by the tuned
+    # runs alone marked complete, then by the partial result)
+    finished = out.read_bytes()
+    calls.clear()
+    monkeypatch.setattr(montecarlo, "monte_carlo", interrupted_second_call)
+    assert not studies.evaluate(study, tuned, **kw)["complete"]
+    assert out.read_bytes() == finished
 
 
 def test_nlio_case_gradient_matches_finite_differences():

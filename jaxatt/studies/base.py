@@ -466,6 +466,7 @@ def reproduce(
     observers: Optional[Mapping[str, Tuple[Any, Any]]] = None,
     extra: Optional[dict] = None,
     resume: bool = False,
+    pending: bool = False,
 ) -> dict:
     """Monte Carlo of every compared observer of ``study`` at ``cfg``: prints the study's tables beside the
     paper's numbers, writes the JSON (see the module docstring) after every chunk and at the end, and the figure.
@@ -477,7 +478,9 @@ def reproduce(
     With ``json_path``, every finished run's metrics and traces are also saved after every chunk to
     ``runs_file(json_path)`` (NPZ); ``resume=True`` reads it and runs only the runs not in it (same study, config,
     runs, seed, precision and gains, else ValueError): the result equals an uninterrupted run's. A complete result
-    already at ``json_path`` is not replaced by the partial result of an interrupted run.
+    already at ``json_path`` is not replaced by the partial result of an interrupted run (nor by that of a
+    resumed one). ``pending``: the caller computes more after this call (:func:`evaluate`'s comparison), so the
+    JSON written here says ``"complete": false`` even when every run finished.
     """
     from .. import montecarlo
 
@@ -502,7 +505,7 @@ def reproduce(
     if resume:
         n = min((len(r.run_indices) for r in saved.values()), default=0) if len(saved) == len(obs) else 0
         log(f"resuming: {n}/{runs} runs of every observer already saved in {runs_file(json_path)}")
-    keep_complete = bool(json_path) and not resume and _is_complete(json_path)
+    keep_complete = bool(json_path) and _is_complete(json_path)
     published = study.published(cfg)
     why = study.comparable(cfg)
     n_steps = int(round(cfg.duration / cfg.dt))
@@ -547,7 +550,7 @@ def reproduce(
         def on_chunk(res, label=label, entry=entry):
             log(f"  {label}: {len(res.run_indices)}/{runs} runs, {time.perf_counter() - t_all:.1f} s")
             payload["observers"][label] = entry(res)
-            _finish(payload, complete=False)
+            _finish(payload, complete=False, n_observers=len(obs))
             if runs_file(json_path):
                 _write_runs(runs_file(json_path), spec, {**results, label: res})
             if not keep_complete:
@@ -589,7 +592,7 @@ def reproduce(
     payload["timing"] = {"wall_s": time.perf_counter() - t_all, "runs": runs, "steps_per_run": n_steps}
     payload["notes"] = unsettled_notes(results, study.window_start(cfg)) + payload["notes"]
     study.add_results(cfg, payload, results)
-    _finish(payload, complete=complete and len(payload["observers"]) == len(obs))
+    _finish(payload, complete=complete and len(payload["observers"]) == len(obs), n_observers=len(obs))
     if len(obs) == 1:
         payload["timing"].update(next(iter(payload["observers"].values()))["timing"])
     report = study.format_report(payload)
@@ -616,11 +619,12 @@ def reproduce(
         print(f"plot written to {plot_path}")
     if runs_file(json_path):
         _write_runs(runs_file(json_path), spec, results)
-    if payload["complete"] or not keep_complete:
-        io.write_json(json_path, payload)
-        if json_path:
+    on_disk = {**payload, "complete": False} if pending else payload
+    if on_disk["complete"] or not keep_complete:
+        io.write_json(json_path, on_disk)
+        if json_path and not pending:
             print(f"results written to {json_path}" + ("" if payload["complete"] else " (complete: false)"))
-    else:
+    elif not pending:
         print(f"the complete result already in {json_path} is kept")
     if runs_file(json_path) and not payload["complete"]:
         print(f"finished runs saved in {runs_file(json_path)}: rerun with --resume to finish")
@@ -741,11 +745,13 @@ def _is_complete(json_path) -> bool:
         return False
 
 
-def _finish(payload: dict, complete: bool) -> None:
+def _finish(payload: dict, complete: bool, n_observers: int) -> None:
+    """Top-level ``complete``, ``runs_done`` and, for a study of one observer, its ``metrics`` / ``metric_units``
+    (a study of several has them per observer only: not the first observer's while it alone has runs)."""
     entries = payload["observers"]
     payload["complete"] = complete
     payload["runs_done"] = min((e["runs_done"] for e in entries.values()), default=0)
-    if len(entries) == 1:
+    if n_observers == 1 and len(entries) == 1:
         payload["metrics"] = next(iter(entries.values()))["metrics"]
         payload["metric_units"] = next(iter(entries.values())).get("metric_units", {})
 
@@ -779,6 +785,11 @@ def evaluate(
     study.check_params(params)
     gains = registry.get(s.entry).gains
     obs = {study.tuned: (s.observer, params)}
+    same = all(
+        np.array_equal(np.asarray(a), np.asarray(b))
+        for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params))
+    )
+    kept = bool(json_path) and _is_complete(json_path)  # a complete result there is replaced by a complete one only
     payload = reproduce(
         study,
         cfg,
@@ -793,10 +804,7 @@ def evaluate(
         progress=progress,
         resume=resume,
         extra={"gains": gainsfile.gains_to_dict(params, gains), "gains_path": gains_source, **(extra or {})},
-    )
-    same = all(
-        np.array_equal(np.asarray(a), np.asarray(b))
-        for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(s.params))
+        pending=compare_paper and not same,  # complete only with the comparison
     )
     if compare_paper and not same and payload["complete"]:
         try:
@@ -817,10 +825,13 @@ def evaluate(
         if not ref["complete"]:  # interrupted: the tuned runs are saved, the comparison is run again on resume
             payload["complete"] = False
             payload["paper_gains_runs_done"] = ref["runs_done"]
-            io.write_json(json_path, payload)
+            if not kept:
+                io.write_json(json_path, payload)
             print(
                 f"INTERRUPTED during the comparison with the paper's gains ({ref['runs_done']}/{runs} runs): "
-                "no comparison written" + (f"; rerun with --resume to finish {json_path}" if json_path else "")
+                "no comparison written"
+                + (f"; rerun with --resume to finish {json_path}" if json_path else "")
+                + (f" (the complete result already in {json_path} is kept)" if kept else "")
             )
             return payload
         pm = ref["metrics"]
