@@ -858,6 +858,8 @@ def _evaluate(args) -> int:
 
     study = studies.get(args.experiment)
     io.check_output_path(args.json, "--json", suffixes=io.JSON_SUFFIXES, inputs={"--gains": args.gains})
+    if args.gains is not None and not args.gains.strip():
+        raise UserError("--gains: empty path (leave --gains out to evaluate the paper's gains)")
     d = gainsfile.read(args.gains) if args.gains else None
     try:
         cfg = study.config(**_evaluation_config(args, d))

@@ -456,8 +456,10 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys, monkeypatch):
     e = json.loads(out.read_text())
     assert_provenance(e["environment"])
     assert e["gains_path"] == str(gains) and "comparison" in e and e["complete"]
-    # gains of another study are refused
+    # gains of another study are refused; an empty --gains is not the paper's gains (it silently was)
     assert cli.main(["evaluate", "--experiment", "batista-ges", "--gains", str(gains), "--runs", "1"]) == 2
+    assert cli.main(["evaluate", "--experiment", "batista-so3", "--gains", "", "--runs", "1"]) == 2
+    assert "--gains: empty path" in capsys.readouterr().err
 
 
 def test_evaluate_runs_the_set_up_the_gains_were_tuned_on(tmp_path, capsys):

@@ -1190,8 +1190,8 @@ def _fit_study(
     if not quiet:
         print(
             f"fit {st.name}: {bound.n_free()} tunable numbers in {sorted(bound.transforms)}; {train_runs} training "
-            f"runs (batch {batch}), {val_runs} validation runs, {s.duration:g} s at {1 / s.dt:g} Hz; loss "
-            f"{spec.describe()['kind']}; the first step compiles",
+            f"runs (batch {min(batch, train_runs)}), {val_runs} validation runs, {s.duration:g} s at "
+            f"{1 / s.dt:g} Hz; loss {spec.describe()['kind']}; the first step compiles",
             file=sys.stderr,
             flush=True,
         )
