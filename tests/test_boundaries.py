@@ -762,7 +762,7 @@ def test_overwriting_fit_lives_in_partial_until_it_finishes_and_resume_continues
 
 
 def test_a_complete_result_survives_an_interrupted_resume_and_a_study_of_several_observers_has_no_stale_metrics(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, capsys
 ):
     """A complete JSON is replaced only by a complete one, with --resume too (an interrupted resume replaced it with
     its partial result). A study of several observers has metrics per observer only (the top-level ``metrics``
@@ -800,7 +800,10 @@ def test_a_complete_result_survives_an_interrupted_resume_and_a_study_of_several
     assert out.read_bytes() == finished
     calls.clear()
     monkeypatch.setattr(montecarlo, "monte_carlo", interrupt_after_a_chunk_of(1))  # the first left to run
-    assert not studies.reproduce(study, runs=2, resume=True, **kw)["complete"]
+    capsys.readouterr()
+    assert not studies.reproduce(study, runs=2, resume=True, **{**kw, "quiet": False})["complete"]
+    first, second = obs  # the resume says what each observer had (it said 0/2 unless every one had runs)
+    assert f"resuming: runs already saved in {out}.runs.npz: {first} 2/2, {second} 1/2" in capsys.readouterr().err
     assert out.read_bytes() == finished
     monkeypatch.setattr(montecarlo, "monte_carlo", real)
     assert studies.reproduce(study, runs=2, resume=True, **kw)["complete"]

@@ -521,6 +521,9 @@ def test_bad_input_gets_clear_errors():
 
     with pytest.raises(ValueError, match="runs"):
         studies.reproduce(studies.get("nlio-case1"), E.config("nlio-case1"), runs=0)
+    # a horizon too short for its (scaled) windows: one line, not 'non-finite result' after the runs (exit 1)
+    with pytest.raises(ValueError, match=r"the transient window \(0 \.\.\. 0.004 s\) holds no estimate at dt"):
+        studies.get("nlio-case1").config(duration=0.01)
 
 
 def test_shipped_gradient_gains():

@@ -502,9 +502,9 @@ def reproduce(
     trace_every, trace_fn = study.trace(cfg, bool(plot_path))
     spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every)
     saved = _read_runs(runs_file(json_path), spec) if resume else {}
-    if resume:
-        n = min((len(r.run_indices) for r in saved.values()), default=0) if len(saved) == len(obs) else 0
-        log(f"resuming: {n}/{runs} runs of every observer already saved in {runs_file(json_path)}")
+    if resume:  # per observer: a study interrupted in its third observer holds the first two's runs
+        have = ", ".join(f"{k} {len(saved[k].run_indices) if k in saved else 0}/{runs}" for k in obs)
+        log(f"resuming: runs already saved in {runs_file(json_path)}: {have}")
     keep_complete = bool(json_path) and _is_complete(json_path)
     published = study.published(cfg)
     why = study.comparable(cfg)

@@ -237,7 +237,14 @@ def check_config(cfg: Config) -> None:
             raise ValueError(f"unknown observer {o!r}; choose from {sorted(_OBSERVERS)}")
     if not (cfg.dt > 0 and cfg.duration >= cfg.dt):
         raise ValueError(f"need dt > 0 and duration >= dt, got dt={cfg.dt}, duration={cfg.duration}")
-    check_step_count(cfg.duration, cfg.dt)
+    n = check_step_count(cfg.duration, cfg.dt)
+    for name, lo, hi in cfg.windows:  # estimates 1 ... n at t = k dt (estimate 0 is the initial guess)
+        first, last = max(1, math.ceil(lo / cfg.dt - 1e-9)), min(n, math.floor(hi / cfg.dt + 1e-9))
+        if first > last:
+            raise ValueError(
+                f"the {name} window ({lo:g} ... {hi:g} s) holds no estimate at dt = {cfg.dt:g} s over "
+                f"{cfg.duration:g} s: use a longer duration"
+            )
 
 
 # ------------------------------------------------------------------------------------------------------
