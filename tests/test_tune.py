@@ -350,7 +350,8 @@ def test_evaluate_writes_the_reproduce_metrics_layout(ges, tmp_path, capsys):
     assert c["ratio"] == pytest.approx(c["tuned"] / c["paper_gains"])
     assert saved["gains"]["alpha2"]["value"] == pytest.approx(list(0.5 * np.asarray(p.alpha2)))
     assert payload["metrics"]["mean_angle_error_deg"]["mean"] == pytest.approx(m["mean"])
-    assert "mean_angle_error_deg" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "mean_angle_error_deg" in printed and printed.count(f"results written to {out}") == 1  # with the comparison
 
 
 def test_evaluate_interrupted_in_the_paper_comparison_is_incomplete_and_resumes(ges, tmp_path, monkeypatch):

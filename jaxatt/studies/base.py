@@ -854,4 +854,6 @@ def evaluate(
             )
         print("\n".join(lines))
         io.write_json(json_path, payload)
+        if json_path:
+            print(f"results written to {json_path}")
     return payload
