@@ -237,8 +237,14 @@ def check_config(cfg: Config) -> None:
             raise ValueError(f"unknown observer {o!r}; choose from {sorted(_OBSERVERS)}")
     if not (cfg.dt > 0 and cfg.duration >= cfg.dt):
         raise ValueError(f"need dt > 0 and duration >= dt, got dt={cfg.dt}, duration={cfg.duration}")
+    check_step_count(cfg.duration, cfg.dt)
+
+
+def check_windows_hold_estimates(cfg: Config) -> None:
+    """ValueError (one line) unless every metric window of ``cfg`` holds an estimate (estimates 1 ... n at
+    t = k dt; estimate 0 is the initial guess): a study's horizon too short for its windows gave NaN metrics."""
     n = check_step_count(cfg.duration, cfg.dt)
-    for name, lo, hi in cfg.windows:  # estimates 1 ... n at t = k dt (estimate 0 is the initial guess)
+    for name, lo, hi in cfg.windows:
         first, last = max(1, math.ceil(lo / cfg.dt - 1e-9)), min(n, math.floor(hi / cfg.dt + 1e-9))
         if first > last:
             raise ValueError(
@@ -578,7 +584,9 @@ class NLIOStudy(base.Study):
         if dur != DURATION and "windows" not in overrides:  # reduced horizons: the windows scale with it
             f = dur / DURATION
             overrides["windows"] = tuple((n, a * f, b * f) for n, a, b in CASES[self.case].windows)
-        return config(self.name, **overrides)
+        cfg = config(self.name, **overrides)
+        check_windows_hold_estimates(cfg)  # the study's metrics are over its windows
+        return cfg
 
     def scenario(self, cfg):
         return scenario(cfg)
