@@ -32,7 +32,7 @@ import numpy as np
 
 from . import engine, frames
 from .observers import registry
-from .types import ImuSample, Observer
+from .types import ImuSample, Observer, check_window_start
 
 __all__ = [
     "filter",
@@ -1107,11 +1107,7 @@ def monte_carlo(
     if not isinstance(scn, AhrsScenario):
         raise ValueError(f"scenario must be an AHRS scenario (jaxatt.api.ahrs_scenario(...)), got {type(scn).__name__}")
     duration = mc.check_duration(duration)
-    if window_start is not None and not isinstance(window_start, (int, float, np.integer, np.floating)):
-        raise ValueError(f"window_start must be a number of seconds, got {window_start!r}")
-    ws = 2.0 * duration / 3.0 if window_start is None else float(window_start)
-    if not 0.0 <= ws < duration:
-        raise ValueError(f"window_start ({ws} s) must lie inside the run [0, {duration}) s")
+    ws = check_window_start(2.0 * duration / 3.0 if window_start is None else window_start, duration)
     if entry is None or not registry.builtin(entry):
         step = mc.check_dt(dt)
         n_check = max(1, min(CHECK_SAMPLES - 1, int(round(duration / step))))

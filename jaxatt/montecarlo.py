@@ -27,7 +27,7 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .types import MAX_RUNS, ImuSample, Observer, check_seed, check_step_count
+from .types import MAX_RUNS, ImuSample, Observer, check_seed, check_step_count, check_window_start
 
 __all__ = [
     "run",
@@ -575,10 +575,7 @@ def monte_carlo(
     chunk = check_count("chunk", chunk, 1)
     seed = check_seed(seed)
     duration = check_duration(duration)
-    if isinstance(window_start, bool) or not isinstance(window_start, (int, float, np.integer, np.floating)):
-        raise ValueError(f"window_start must be a number of seconds, got {window_start!r}")
-    if not 0.0 <= float(window_start) < duration:  # NaN too: an empty window would give metrics of 0
-        raise ValueError(f"window_start ({float(window_start)} s) must lie inside the run [0, {duration}) s")
+    window_start = check_window_start(window_start, duration)  # an empty window would give metrics of 0
     _check_previous(previous, runs, trace_every)
     engine.check_finite_params(params, observer.name)
     if validate is not None:

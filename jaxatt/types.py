@@ -44,6 +44,17 @@ def check_step_count(duration: float, dt: float) -> int:
     return n
 
 
+def check_window_start(window_start, duration) -> float:
+    """``window_start`` (s) as a float: a number in [0, ``duration``) s, where a run's metric window begins
+    (NaN, or a start at or past the end, would leave the window empty); ValueError naming it otherwise."""
+    real = isinstance(window_start, (int, float)) or _is_numpy_number(window_start)
+    if isinstance(window_start, bool) or not real:
+        raise ValueError(f"window_start must be a number of seconds, got {window_start!r}")
+    if not 0.0 <= float(window_start) < duration:
+        raise ValueError(f"window_start ({float(window_start)} s) must lie inside the run [0, {duration}) s")
+    return float(window_start)
+
+
 def check_seed(seed) -> int:
     """A PRNG seed: a whole number that fits in 64 bits, |seed| < 2^63 (what ``jax.random.PRNGKey`` takes);
     ValueError otherwise. (Here, without jax, so that the command line checks ``--seed`` before importing it.)"""
@@ -78,6 +89,12 @@ def _is_numpy_integer(x) -> bool:
     import numpy as np
 
     return isinstance(x, np.integer)
+
+
+def _is_numpy_number(x) -> bool:
+    import numpy as np
+
+    return isinstance(x, (np.integer, np.floating))
 
 
 #: The type of a gain or reference in an observer's ``Params``: a numpy array or float when the params are built,

@@ -17,7 +17,7 @@ from typing import NamedTuple, Sequence
 
 from .. import api
 from ..observers import registry
-from ..types import check_step_count
+from ..types import check_step_count, check_window_start
 from . import base
 
 NAME = "ahrs"
@@ -83,8 +83,7 @@ def config(**overrides) -> Config:
     if not (cfg.dt > 0 and cfg.duration >= cfg.dt):
         raise ValueError(f"need dt > 0 and duration >= dt, got dt = {cfg.dt}, duration = {cfg.duration}")
     check_step_count(cfg.duration, cfg.dt)
-    if not 0.0 <= cfg.window_start < cfg.duration:
-        raise ValueError(f"window_start ({cfg.window_start} s) must lie inside the run [0, {cfg.duration}) s")
+    check_window_start(cfg.window_start, cfg.duration)
     return cfg
 
 

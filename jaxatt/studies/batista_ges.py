@@ -13,7 +13,7 @@ import numpy as np
 from .. import so3
 from ..observers import batista_ges as ges
 from ..sim import earth, imu, trajectories
-from ..types import check_step_count
+from ..types import check_step_count, check_window_start
 from . import base
 
 if TYPE_CHECKING:
@@ -163,8 +163,7 @@ def check_config(cfg) -> None:
     if cfg.duration < cfg.dt:
         raise ValueError(f"duration ({cfg.duration} s) must be at least one step dt = {cfg.dt} s")
     check_step_count(cfg.duration, cfg.dt)
-    if not (0.0 <= cfg.window_start < cfg.duration):
-        raise ValueError(f"window_start ({cfg.window_start} s) must lie inside the run [0, {cfg.duration}) s")
+    check_window_start(cfg.window_start, cfg.duration)
     if not -90.0 <= cfg.latitude_deg <= 90.0:
         raise ValueError(f"latitude must be in [-90, 90] degrees, got {cfg.latitude_deg}")
     for name in ("gyro_arw_deg_h_rthz", "mag_noise_nT", "noise_scale", "rate_scale"):
