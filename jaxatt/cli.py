@@ -225,6 +225,14 @@ def _trial_inputs(args) -> dict:
     return {f"--logs ({p})": p for p in args.logs}
 
 
+def _gains_out_flags(p: argparse.ArgumentParser) -> None:
+    """--out, and --resume / --overwrite (one or the other: continue the fit in --out, or replace it)."""
+    p.add_argument("--out", default=None, help=f"the gains file, rewritten after every step ({DEFAULT_GAINS_OUT})")
+    existing = p.add_mutually_exclusive_group()
+    existing.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
+    existing.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+
+
 def _output_flags(p: argparse.ArgumentParser):
     """--quiet / --progress: progress lines on stderr (default: only when stderr is a terminal)."""
     out = p.add_mutually_exclusive_group()
@@ -420,9 +428,7 @@ def _parser() -> argparse.ArgumentParser:
         default="adam",
         help="adam; or lbfgs (quasi-Newton with a line search, --lr caps its step): needs --objective varfree",
     )
-    tp.add_argument("--out", default=None, help=f"gains file, rewritten after every step ({DEFAULT_GAINS_OUT})")
-    tp.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
-    tp.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    _gains_out_flags(tp)
     _output_flags(tp)
 
     vp = sub.add_parser("evaluate", help="Monte Carlo of a study with a gains file (same JSON as reproduce)")
@@ -461,9 +467,7 @@ def _parser() -> argparse.ArgumentParser:
         help="start from this gains file (default: the observer's shipped gains, or its defaults if none are shipped)",
     )
     bt.add_argument("--float64", action="store_true", help="tune in float64 (default float32: faster)")
-    bt.add_argument("--out", default=None, help=f"the gains file, rewritten after every step ({DEFAULT_GAINS_OUT})")
-    bt.add_argument("--resume", action="store_true", help="continue the fit saved in --out")
-    bt.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    _gains_out_flags(bt)
     _output_flags(bt)
 
     ep = sub.add_parser(

@@ -330,6 +330,9 @@ BAD_INPUT = [
         ["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/partial_folder.json"],
         r"out .*partial_folder\.json\.partial\.json: is a folder",
     ),
+    # continue the fit in --out, or replace it: not both
+    (["tune", "--experiment", "batista-so3", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"not allowed"),
+    (["broad-tune", "--data-dir", "{d}/trials_ok", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"--resume"),
 ]
 
 

@@ -583,9 +583,15 @@ def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
     assert fitter.devices_for_batches([16, 3]) == 1
 
 
-def test_resume_without_out_is_refused(tmp_path):
+def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     with pytest.raises(ValueError, match="resume=True needs out"):
         jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, resume=True)
+    out = tmp_path / "g.json"
+    jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, out=str(out), quiet=True)
+    kept = out.read_bytes()
+    with pytest.raises(ValueError, match="resume=True and overwrite=True: pass one"):  # used to resume silently
+        jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=2, out=str(out), resume=True, overwrite=True)
+    assert out.read_bytes() == kept
 
 
 def _tiny_trial():

@@ -701,6 +701,10 @@ def fit(
         from ..api import compute_dtype
 
         dtype = compute_dtype(dtype=dtype)
+    if resume and overwrite:
+        raise ValueError(
+            "resume=True and overwrite=True: pass one (resume continues the fit saved in out, overwrite replaces it)"
+        )
     final_path = io.check_output_path(out, "out", suffixes=io.JSON_SUFFIXES)
     out_path, previous = final_path, None
     if final_path is not None:
