@@ -881,6 +881,10 @@ def _evaluate(args) -> int:
         if note:
             warnings.warn(note, stacklevel=1)
         params = gainsfile.apply(s.params, d["gains"], source=f"--gains {args.gains}")
+        try:
+            study.check_params(params)
+        except ValueError as e:
+            raise UserError(f"--gains {args.gains}: {e}") from None
         source = args.gains
         tun = d.get("settings", {})
         if tun.get("seed") == args.seed:
@@ -1450,12 +1454,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (UserError, ValueError, FileNotFoundError, ImportError) as e:
         if args.debug:
             raise
-        print(f"jaxatt: error: {e}", file=sys.stderr)
+        print(f"jaxatt: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except FloatingPointError as e:
         if args.debug:
             raise
-        print(f"jaxatt: error: non-finite result: {e}", file=sys.stderr)
+        print(f"jaxatt: error: non-finite result: {_one_line(e)}", file=sys.stderr)
         return 1
     except OSError as e:  # a file that cannot be read or written (permissions, a full disk, /dev/full)
         if args.debug:
@@ -1463,6 +1467,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
         print(f"jaxatt: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
+
+
+def _one_line(error: BaseException) -> str:
+    """An error's message on one line (a message that shows an array may hold line breaks)."""
+    return " ".join(str(error).split())
 
 
 def compile_cache_dir(environ=os.environ) -> Optional[str]:

@@ -13,6 +13,8 @@ from typing import Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from .types import shown
+
 __all__ = ["value_at", "refine", "mask", "mask_from", "check"]
 
 
@@ -34,9 +36,9 @@ def check(switch_times, gains: dict, why: str = "") -> None:
         raise ValueError(f"{', '.join(arrays)} must be (n,) and switch_times (n-1,); got {shapes}, {st.shape}")
     for name, v in arrays.items():
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"{name} must be finite and positive{f' ({why})' if why else ''}, got {v}")
+            raise ValueError(f"{name} must be finite and positive{f' ({why})' if why else ''}, got {shown(v)}")
     if not np.all(np.isfinite(st)) or np.any(np.diff(st) <= 0):
-        raise ValueError(f"switch_times must be finite and increasing, got {st}")
+        raise ValueError(f"switch_times must be finite and increasing, got {shown(st)}")
 
 
 def mask(n_intervals: int, tunable: Sequence[int]) -> np.ndarray:

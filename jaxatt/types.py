@@ -85,6 +85,27 @@ def check_shape(x, name: str, tail: tuple) -> tuple:
     return shape
 
 
+def shown(value) -> str:
+    """``value`` (a number or an array of any shape) on one line, for an error message: ``[-1.0, 5e-09]``."""
+    import numpy as np
+
+    try:
+        arr = np.asarray(value)
+    except Exception:  # noqa: BLE001 - anything a user passed: its repr
+        return " ".join(repr(value).split())
+    if arr.ndim == 0:
+        return " ".join(repr(value).split()) if arr.dtype == object else f"{arr.item()!r}"
+    return " ".join(np.array2string(arr, separator=", ", max_line_width=10**9, threshold=12, edgeitems=3).split())
+
+
+def shown_for_shape(value, shape: tuple) -> str:
+    """For "must be a finite array of ``shape``": ``shape (2, 3)`` when the shape is wrong, else the values."""
+    import numpy as np
+
+    got = np.shape(value)
+    return f"shape {got}" if got != tuple(shape) else shown(value)
+
+
 def _is_numpy_integer(x) -> bool:
     import numpy as np
 

@@ -95,6 +95,9 @@ def make_files(d: Path) -> None:
         (d / f"robust_{name}.json").write_text(json.dumps(g))
     (d / "robust_ok.json").write_text(json.dumps(robust))
     (d / "so3_study.json").write_text((shipped / "batista-so3.json").read_text())
+    so3 = json.loads((shipped / "batista-so3.json").read_text())
+    so3["gains"]["alpha1"]["value"][0], so3["status"] = -1.0, "done"  # a schedule: its message shows an array
+    (d / "so3_negative.json").write_text(json.dumps(so3))
     (d / "broken.json").write_text('{"format": "jaxatt-gains/2", "observer": ')
     (d / "not_gains.json").write_text('{"hello": 1}')
     for name, kw in {
@@ -330,6 +333,8 @@ BAD_INPUT = [
         ["tune", "--experiment", "batista-so3", "--steps", "1", "--out", "{d}/partial_folder.json"],
         r"out .*partial_folder\.json\.partial\.json: is a folder",
     ),
+    # a study's gains file with a value its theorem refuses: named by the file, the array on the same line
+    (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/so3_negative.json"], r"so3_negative.*alpha1.*-1"),
     # continue the fit in --out, or replace it: not both
     (["tune", "--experiment", "batista-so3", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"not allowed"),
     (["broad-tune", "--data-dir", "{d}/trials_ok", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"--resume"),
@@ -453,6 +458,9 @@ API_BAD = [
     (lambda g, a, m: jaxatt.filter("madgwick", g[:10], a, m, dt=0.01), r"acc has 100 samples, gyr has 10"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"beta": np.nan}), r"beta"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params={"gamma": 1.0}), r"no field 'gamma'"),
+    # a gain shown in the message stays on the message's line (numpy prints a matrix over several lines)
+    (lambda g, a, m: jaxatt.filter("mekf", g, a, m, dt=0.01, params={"b_hat_0": np.full((2, 3), np.nan)}), r"\[\["),
+    (lambda g, a, m: jaxatt.filter("mekf", g, a, m, dt=0.01, params={"r_acc": np.eye(3) * np.nan}), r"r_acc.*nan"),
     (lambda g, a, m: jaxatt.filter("madgwick", g, a, m, dt=0.01, params="/nonexistent.json"), r"nonexistent"),
     (lambda g, a, m: jaxatt.monte_carlo("madgwick", {"beta": np.nan}, runs=1, duration=1.0), r"beta"),
     (lambda g, a, m: jaxatt.monte_carlo("madgwick", runs=0, duration=1.0), r"runs must be >= 1"),

@@ -70,7 +70,7 @@ import numpy as np
 
 from .. import engine, so3
 from ..montecarlo import check_count, check_dt, check_duration
-from ..types import check_step_count
+from ..types import check_step_count, shown
 from .varfree import _windows, expected_norm
 
 __all__ = ["Prior", "Model", "floor", "floor_study", "heading_floor_closed_form"]
@@ -247,7 +247,7 @@ def floor(
             f"prior must be a Prior(attitude_rad, bias_rad_s) of two numbers or None, got {prior!r}"
         ) from None
     if not (math.isfinite(pa) and math.isfinite(pb) and pa >= 0 and pb >= 0):
-        raise ValueError(f"prior standard deviations must be finite and >= 0, got {prior}")
+        raise ValueError(f"prior standard deviations must be finite and >= 0, got {shown(prior)}")
     scn = engine.cast_floats(scenario, jnp.float64)
     mdl = _model(scn, dt, bias)
     for name, start, _ in wins:

@@ -62,6 +62,7 @@ __all__ = [
 from ..schedule import mask as schedule_mask  # noqa: E402
 from ..schedule import mask_from as schedule_mask_from
 from ..schedule import refine as refine_schedule
+from ..types import shown
 
 
 def softplus_inverse(y):
@@ -143,7 +144,7 @@ class Positive(Transform):
     def inverse(self, value):
         v = np.asarray(value, float)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"a positive gain must be finite and > 0, got {v}")
+            raise ValueError(f"a positive gain must be finite and > 0, got {shown(v)}")
         s = np.asarray(1.0 if self.scale is None else self.scale, float)
         return np.log(v / s) if self.method == "log" else softplus_inverse(v / s)
 
@@ -239,7 +240,7 @@ class Bounded(Transform):
         v = np.asarray(value, float)
         f = (v - self.low) / (self.high - self.low)
         if np.any(f <= 0) or np.any(f >= 1):
-            raise ValueError(f"a Bounded gain must lie in ({self.low}, {self.high}), got {v}")
+            raise ValueError(f"a Bounded gain must lie in ({self.low}, {self.high}), got {shown(v)}")
         return np.log(f) - np.log1p(-f)
 
     def forward(self, u):
@@ -269,14 +270,14 @@ class LogBasis(Transform):
         if b.ndim != 2 or b.shape[0] != v.size:
             raise ValueError(f"LogBasis: basis must be ({v.size}, m) for a gain of {v.size} values, got {b.shape}")
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"a LogBasis gain must be finite and > 0, got {v}")
+            raise ValueError(f"a LogBasis gain must be finite and > 0, got {shown(v)}")
         return dataclasses.replace(self, ref=v)
 
     def inverse(self, value):
         ref = np.asarray(self.bind(value).ref if self.ref is None else self.ref, float)
         v = np.asarray(value, float)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"a LogBasis gain must be finite and > 0, got {v}")
+            raise ValueError(f"a LogBasis gain must be finite and > 0, got {shown(v)}")
         b = np.asarray(self.basis, float)
         return np.linalg.lstsq(b, np.log(v / ref).reshape(-1), rcond=None)[0]
 

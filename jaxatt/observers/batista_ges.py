@@ -48,7 +48,7 @@ import numpy as np
 
 from .. import schedule, so3
 from ..integrate import rk4_step
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown, shown_for_shape
 from . import registry
 
 __all__ = [
@@ -238,7 +238,7 @@ def growing_memory_params(
         ("gain_z_scale", gain_z_scale),
     ):
         if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"growing_memory_params: {name} must be finite and positive, got {v}")
+            raise ValueError(f"growing_memory_params: {name} must be finite and positive, got {shown(v)}")
     if not (np.isfinite(grow_from) and grow_from > 0):
         raise ValueError(f"growing_memory_params: grow_from must be a positive time in s, got {grow_from}")
     q = schedule.refine(p, refine_times, ["alpha1", "alpha2"])
@@ -283,7 +283,7 @@ def check_references(
         if not np.all(np.isfinite(v)) or not VECTOR_MAGNITUDE[0] <= np.max(np.abs(v)) <= VECTOR_MAGNITUDE[1]:
             lo, hi = VECTOR_MAGNITUDE
             raise ValueError(
-                f"{name} must be finite and non-zero, its largest component {lo:g} to {hi:g} in size, got {v}"
+                f"{name} must be finite and non-zero, its largest component {lo:g} to {hi:g} in size, got {shown(v)}"
             )
     m, w = m / np.max(np.abs(m)), w / np.max(np.abs(w))  # directions only: no underflow or overflow below
     s = np.linalg.norm(np.cross(m, w)) / (np.linalg.norm(m) * np.linalg.norm(w))
@@ -300,7 +300,7 @@ def check_params(p: Params) -> None:
     schedule.check(p.switch_times, {"alpha1": p.alpha1, "alpha2": p.alpha2}, "Theorem 1")
     g = np.asarray(p.gain_z, float)
     if g.shape != (9, 9) or not np.all(np.isfinite(g)):
-        raise ValueError(f"gain_z must be a finite (9, 9) matrix, got shape {g.shape}")
+        raise ValueError(f"gain_z must be a finite (9, 9) matrix, got {shown_for_shape(g, (9, 9))}")
     if not np.allclose(g, g.T, rtol=1e-6, atol=0) or np.min(np.linalg.eigvalsh(0.5 * (g + g.T))) <= 0:
         raise ValueError("gain_z = C2^T Q^-1 C2 must be symmetric positive definite (Q > 0, Theorem 2)")
     eps = float(np.asarray(p.epsilon))

@@ -55,7 +55,7 @@ import numpy as np
 
 from .. import schedule, so3
 from ..integrate import rk4_step, rkmk4_step
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown
 from . import registry
 
 __all__ = [
@@ -207,7 +207,7 @@ def check_params(p: Params) -> None:
     for name in ("alpha0", "alpha3", "alpha4"):
         v = np.asarray(getattr(p, name), float)
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"{name} must be finite and positive (Theorems 1-3), got {v}")
+            raise ValueError(f"{name} must be finite and positive (Theorems 1-3), got {shown(v)}")
     for name, shape in (("m_hat_0", (3,)), ("v_hat_0", (3,)), ("r_hat_0", (3, 3))):
         v = np.asarray(getattr(p, name), float)
         if v.shape != shape or not np.all(np.isfinite(v)):

@@ -68,7 +68,7 @@ import numpy as np
 
 from .. import frames, so3
 from ..integrate import input_at, rk4_step, rkmk4_step
-from ..types import ArrayLike, ImuSample, Interval, Observer, VectorSample
+from ..types import ArrayLike, ImuSample, Interval, Observer, VectorSample, shown, shown_for_shape
 from . import registry
 
 __all__ = [
@@ -310,12 +310,12 @@ def check_params(p: Params) -> None:
         raise ValueError("at least one measurement is needed (n1 + n2 >= 1, Section II)")
     for name, g in (("k", k), ("l", l)):
         if not np.all(np.isfinite(g)) or np.any(g < 0):
-            raise ValueError(f"gains {name} must be finite and non-negative (k_i, l_j > 0 in eq. 10), got {g}")
+            raise ValueError(f"gains {name} must be finite and non-negative (k_i, l_j > 0 in eq. 10), got {shown(g)}")
     if k_i.shape != () or not np.isfinite(k_i) or k_i < 0:
         raise ValueError(f"k_i must be a finite non-negative scalar, got {k_i}")
     r = np.asarray(p.r_hat_0, float)
     if r.shape != (3, 3) or not np.all(np.isfinite(r)):
-        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got shape {r.shape}")
+        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got {shown_for_shape(r, (3, 3))}")
     if np.linalg.norm(r.T @ r - np.eye(3)) > 1e-6 or np.linalg.det(r) <= 0:
         raise ValueError(
             "r_hat_0 must be a rotation matrix (R^T R = I, det R = +1); "
@@ -323,11 +323,11 @@ def check_params(p: Params) -> None:
         )
     b = np.asarray(p.bias_0, float)
     if b.shape != (3,) or not np.all(np.isfinite(b)):
-        raise ValueError(f"bias_0 must be a finite (3,) vector (rad/s), got shape {b.shape}")
+        raise ValueError(f"bias_0 must be a finite (3,) vector (rad/s), got {shown_for_shape(b, (3,))}")
     for name, v, n in (("ref_inertial", p.ref_inertial, k.size), ("ref_body", p.ref_body, l.size)):
         v = np.asarray(v, float)
         if v.shape != (n, 3) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite ({n}, 3) array, got shape {v.shape}")
+            raise ValueError(f"{name} must be a finite ({n}, 3) array, got {shown_for_shape(v, (n, 3))}")
 
 
 def check_inputs(p: Params, samples, imu_fields: Sequence[str] = ("acc", "mag")) -> None:
@@ -336,7 +336,7 @@ def check_inputs(p: Params, samples, imu_fields: Sequence[str] = ("acc", "mag"))
     n1, n2 = np.shape(p.k)[0], np.shape(p.l)[0]
     g = np.shape(samples.gyr)
     if len(g) != 2 or g[1] != 3:
-        raise ValueError(f"samples.gyr must have shape (T, 3), got {g}")
+        raise ValueError(f"samples.gyr must have shape (T, 3), got {shown(g)}")
     T = g[0]
 
     def need_const(name, arr):

@@ -71,7 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ArrayLike, ImuSample, Observer
+from ..types import ArrayLike, ImuSample, Observer, shown
 from . import registry
 from .mahony import nwu_to_enu, quat_from_acc_mag_triad, start_quaternion, step_inputs
 
@@ -261,7 +261,7 @@ def check_params(p: Params) -> None:
     """beta a finite scalar > 0 (ValueError otherwise)."""
     v = np.asarray(p.beta, float)
     if v.shape != () or not np.isfinite(v) or v <= 0:
-        raise ValueError(f"Madgwick beta must be a finite number > 0 (rad/s), got {v}")
+        raise ValueError(f"Madgwick beta must be a finite number > 0 (rad/s), got {shown(v)}")
 
 
 ENTRIES = (

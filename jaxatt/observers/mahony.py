@@ -81,7 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown
 from . import registry
 
 __all__ = [
@@ -407,7 +407,7 @@ def check_params(p: Params) -> None:
     for name, strict in (("kp", True), ("ki", False)):
         v = np.asarray(getattr(p, name), float)
         if v.shape != () or not np.isfinite(v) or (v <= 0 if strict else v < 0):
-            raise ValueError(f"Mahony {name} must be a finite number {'> 0' if strict else '>= 0'}, got {v}")
+            raise ValueError(f"Mahony {name} must be a finite number {'> 0' if strict else '>= 0'}, got {shown(v)}")
 
 
 def _registry_observer() -> Observer:

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown, shown_for_shape
 from . import registry
 
 __all__ = [
@@ -146,23 +146,23 @@ def check_params(p: Params) -> None:
     for name in ("acc_ref_nav", "mag_ref_nav", "b_hat_0"):
         v = np.asarray(getattr(p, name), float)
         if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite array of shape (3,), got {v}")
+            raise ValueError(f"{name} must be a finite array of shape (3,), got {shown(v)}")
     a, m = np.asarray(p.acc_ref_nav, float), np.asarray(p.mag_ref_nav, float)
     if np.linalg.norm(np.cross(a, m)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(m) or not a.any() or not m.any():
         raise ValueError("acc_ref_nav and mag_ref_nav must be non-zero and not parallel (attitude unobservable)")
     for name in ("gyro_noise_std", "bias_rw"):
         v = np.asarray(getattr(p, name), float)
         if v.shape != () or not np.isfinite(v) or v < 0:
-            raise ValueError(f"{name} must be a finite scalar >= 0, got {v}")
+            raise ValueError(f"{name} must be a finite scalar >= 0, got {shown(v)}")
     for name, n in (("r_acc", 3), ("r_mag", 3), ("p0", 6)):
         v = np.asarray(getattr(p, name), float)
         if v.shape != (n, n) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite ({n}, {n}) matrix, got shape {v.shape}")
+            raise ValueError(f"{name} must be a finite ({n}, {n}) matrix, got {shown_for_shape(v, (n, n))}")
         if not np.allclose(v, v.T, rtol=1e-9, atol=1e-300) or np.linalg.eigvalsh(0.5 * (v + v.T)).min() <= 0:
             raise ValueError(f"{name} must be symmetric positive definite")
     r0 = np.asarray(p.r_hat_0, float)
     if r0.shape != (3, 3) or not np.all(np.isfinite(r0)):
-        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got shape {r0.shape}")
+        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got {shown_for_shape(r0, (3, 3))}")
     if np.linalg.norm(r0.T @ r0 - np.eye(3)) > 1e-6 or np.linalg.det(r0) <= 0:
         raise ValueError("r_hat_0 must be a rotation matrix (R^T R = I, det R = 1)")
 

@@ -65,7 +65,7 @@ import numpy as np
 
 from .. import so3
 from ..integrate import input_at, rk4_step
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown, shown_for_shape
 from . import registry
 
 __all__ = [
@@ -226,7 +226,7 @@ def default_params(
 def _spd(a, name, strict=True):
     a = np.asarray(a, float)
     if a.shape != (3, 3) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be a finite (3, 3) matrix, got shape {a.shape}")
+        raise ValueError(f"{name} must be a finite (3, 3) matrix, got {shown_for_shape(a, (3, 3))}")
     if not np.allclose(a, a.T, rtol=1e-9, atol=1e-300):
         raise ValueError(f"{name} must be symmetric")
     ev = np.linalg.eigvalsh(a)
@@ -242,7 +242,7 @@ def check_params(p: Params) -> None:
     for name in ("acc_ref_nav", "mag_ref_nav", "b_hat_0"):
         v = np.asarray(getattr(p, name), float)
         if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite array of shape (3,), got {v}")
+            raise ValueError(f"{name} must be a finite array of shape (3,), got {shown(v)}")
         refs.append(v)
     a, m = refs[0], refs[1]
     na, nm = np.linalg.norm(a), np.linalg.norm(m)
@@ -255,7 +255,7 @@ def check_params(p: Params) -> None:
     for name, low in (("kv", 0.0), ("bias_bound", 0.0)):
         v = np.asarray(getattr(p, name), float)
         if v.shape != () or not np.isfinite(v) or v <= low:
-            raise ValueError(f"{name} must be a finite positive scalar, got {v}")
+            raise ValueError(f"{name} must be a finite positive scalar, got {shown(v)}")
     th = np.asarray(p.theta, float)
     if th.shape != () or not np.isfinite(th) or th < 1.0:
         raise ValueError(f"theta must be a finite scalar >= 1 (Lemma 1), got {th}")
@@ -266,7 +266,7 @@ def check_params(p: Params) -> None:
         raise ValueError(f"|b_hat_0| = {np.linalg.norm(refs[2]):.4g} exceeds bias_max = {float(ub)}")
     r0 = np.asarray(p.r_hat_0, float)
     if r0.shape != (3, 3) or not np.all(np.isfinite(r0)):
-        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got shape {r0.shape}")
+        raise ValueError(f"r_hat_0 must be a finite (3, 3) matrix, got {shown_for_shape(r0, (3, 3))}")
     for name in ("k1", "k2"):
         _spd(getattr(p, name), f"{name} (K1, K2 > 0, Theorem 1)")
     for name in ("r_acc", "r_mag", "p0_acc", "p0_mag"):
@@ -274,7 +274,7 @@ def check_params(p: Params) -> None:
     for name in ("gyro_noise_std", "q_scale"):
         v = np.asarray(getattr(p, name), float)
         if v.shape != () or not np.isfinite(v) or v < 0:
-            raise ValueError(f"{name} must be a finite scalar >= 0, got {v}")
+            raise ValueError(f"{name} must be a finite scalar >= 0, got {shown(v)}")
 
 
 # ------------------------------------------------------------------------------------------------------

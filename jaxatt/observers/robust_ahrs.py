@@ -80,7 +80,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown
 from . import registry
 
 __all__ = [
@@ -805,14 +805,16 @@ def check_params(p: Params) -> None:
         v = np.asarray(getattr(p, name), float)
         if name == "tau_mag_gate":
             if v.shape != () or not np.isfinite(v):
-                raise ValueError(f"robust AHRS parameter tau_mag_gate must be a finite number of seconds, got {v}")
+                raise ValueError(
+                    f"robust AHRS parameter tau_mag_gate must be a finite number of seconds, got {shown(v)}"
+                )
         elif name == "mag_delay":
             if v.shape != () or not np.isfinite(v) or abs(v) > 1.0:
                 raise ValueError(
-                    f"robust AHRS parameter mag_delay must be a finite number of seconds in [-1, 1], got {v}"
+                    f"robust AHRS parameter mag_delay must be a finite number of seconds in [-1, 1], got {shown(v)}"
                 )
         elif v.shape != () or not np.isfinite(v) or v <= 0:
-            raise ValueError(f"robust AHRS parameter {name} must be a finite positive number, got {v}")
+            raise ValueError(f"robust AHRS parameter {name} must be a finite positive number, got {shown(v)}")
 
 
 _UNITS = dict(

@@ -83,7 +83,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from ..types import ArrayLike, ImuSample, Interval, Observer
+from ..types import ArrayLike, ImuSample, Interval, Observer, shown
 from . import registry
 from .mahony import valid_vector
 
@@ -934,13 +934,13 @@ def check_params(p: Params) -> None:
     for f in Params._fields:
         v = np.asarray(getattr(p, f), float)
         if v.shape != () or not np.isfinite(v):
-            raise ValueError(f"VQF param {f} must be a finite scalar, got {v}")
+            raise ValueError(f"VQF param {f} must be a finite scalar, got {shown(v)}")
         if f in _POSITIVE and v <= 0:
-            raise ValueError(f"VQF param {f} must be > 0, got {v}")
+            raise ValueError(f"VQF param {f} must be > 0, got {shown(v)}")
         if f.endswith("_enabled") and v not in (0.0, 1.0):
-            raise ValueError(f"VQF param {f} must be 0 or 1, got {v}")
+            raise ValueError(f"VQF param {f} must be 0 or 1, got {shown(v)}")
         if f in ("smooth", "bias_vertical_forgetting_factor") and v < 0:
-            raise ValueError(f"VQF param {f} must be >= 0, got {v}")
+            raise ValueError(f"VQF param {f} must be >= 0, got {shown(v)}")
 
 
 _GAINS_6D = (

@@ -39,7 +39,7 @@ from jax.scipy.special import ndtri
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..types import ImuSample
+from ..types import ImuSample, shown
 from .trajectories import RateProfile, SinusoidRates
 
 __all__ = [
@@ -189,7 +189,7 @@ class AhrsScenario(NamedTuple):
             ("r0", r0, (3, 3)),
         ):
             if v.shape != shape or not np.all(np.isfinite(v)):
-                raise ValueError(f"{name} must be a finite array of shape {shape}, got {v}")
+                raise ValueError(f"{name} must be a finite array of shape {shape}, got {shown(v)}")
         if np.linalg.norm(np.cross(acc_ref, np.asarray(mag_ref_nav, float))) <= 1e-9 * (
             np.linalg.norm(acc_ref) * np.linalg.norm(np.asarray(mag_ref_nav, float))
         ):
@@ -203,7 +203,7 @@ class AhrsScenario(NamedTuple):
             ("noise_scale", noise_scale),
         ):
             if not np.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+                raise ValueError(f"{name} must be finite and >= 0, got {shown(v)}")
         if mix not in MIX_MODES:
             raise ValueError(f"mix must be one of {MIX_MODES}, got {mix!r}")
         if not 0.0 <= mix_prob <= 1.0:

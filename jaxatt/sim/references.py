@@ -39,7 +39,7 @@ import numpy as np
 
 from .. import so3
 from ..integrate import magnus4_step
-from ..types import ArrayLike, VectorSample
+from ..types import ArrayLike, VectorSample, shown
 from .trajectories import RateProfile, SinusoidRates
 
 __all__ = [
@@ -94,7 +94,7 @@ def _unit_rows(v) -> np.ndarray:
     v = np.asarray(v, float).reshape(-1, 3)
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     if np.any(n == 0) or not np.all(np.isfinite(v)):
-        raise ValueError(f"reference directions must be finite and non-zero, got {v}")
+        raise ValueError(f"reference directions must be finite and non-zero, got {shown(v)}")
     return v / n
 
 
@@ -220,7 +220,7 @@ def _scenario(
         raise ValueError("a scenario needs at least one measurement")
     for name, v in (("gyro_noise_std", gyro_noise_std), ("meas_noise_std", meas_noise_std)):
         if not (math.isfinite(float(v)) and float(v) >= 0):
-            raise ValueError(f"{name} must be finite and non-negative, got {v}")
+            raise ValueError(f"{name} must be finite and non-negative, got {shown(v)}")
     e = np.deg2rad(_triple(r0_euler_deg, "r0_euler_deg"))
     r0 = np.asarray(so3.euler_zyx_to_matrix(e[0], e[1], e[2]))
     scn = VectorScenario(
