@@ -847,9 +847,15 @@ _LENGTH_SETTINGS = ("duration", "window_start", "windows")
 def _evaluation_config(args, gains) -> dict:
     """Config overrides of ``jaxatt evaluate``: the set-up the gains were tuned on (the gains file's
     ``settings.config``: scenario, noise, form, ...) at the study's own duration, or ``--duration``."""
-    stored = (gains or {}).get("settings", {}).get("config") or {}
-    if (gains or {}).get("study") not in (None, args.experiment) or not isinstance(stored, dict):
-        stored = {}  # a gains file of another study is refused after the set-up, with its own message
+    if (gains or {}).get("study") not in (None, args.experiment):
+        return {"duration": args.duration} if args.duration is not None else {}  # refused after the set-up
+    stored = (gains or {}).get("settings", {}).get("config")  # gainsfile.read checked that settings is an object
+    if not isinstance(stored, (dict, type(None))):
+        raise UserError(
+            f"--gains {args.gains}: settings.config must be an object (the study set-up the gains were tuned on), "
+            f"got {type(stored).__name__}"
+        )
+    stored = stored or {}
     over = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k not in _LENGTH_SETTINGS}
     if args.duration is not None:
         over["duration"] = args.duration
@@ -870,7 +876,7 @@ def _evaluate(args) -> int:
     except ValueError as e:
         raise UserError(f"--gains {args.gains}: the set-up its gains were tuned on: {e}" if d else str(e)) from None
     s = study.setup(**{k: v for k, v in cfg._asdict().items()})
-    params, source, warn = s.params, "paper", None
+    params, source = s.params, "paper"
     if d is not None:
         if d.get("study") not in (None, study.name) or d["observer"] != s.entry:
             raise UserError(
@@ -898,12 +904,11 @@ def _evaluate(args) -> int:
                     "run numbers"
                 ) from None
             if used & set(range(args.runs)):
-                warn = (
-                    f"warning: {len(used & set(range(args.runs)))} evaluation runs were used for tuning (same seed "
-                    f"{args.seed}); use another --seed for held-out numbers"
+                warnings.warn(  # a warning, not a progress line: --quiet keeps it
+                    f"{len(used & set(range(args.runs)))} evaluation runs were used for tuning "
+                    f"(same seed {args.seed}); use another --seed for held-out numbers",
+                    stacklevel=1,
                 )
-    if warn and not args.quiet:
-        print(warn, file=sys.stderr)
     from .progress import Heartbeat
 
     with Heartbeat(f"jaxatt evaluate {study.name}", bool(_progress(args))):

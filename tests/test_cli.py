@@ -485,8 +485,16 @@ def test_evaluate_runs_the_set_up_the_gains_were_tuned_on(tmp_path, capsys):
     assert cli.main([*argv, "--duration", "3"]) == 0
     err = capsys.readouterr().err
     assert "jaxatt: warning:" in err and "did not finish" in err and "'interrupted'" in err
+    # evaluation runs that the fit trained on (its seed 0, runs 0-31) are said, on a line of jaxatt's
+    assert cli.main([*argv, "--duration", "3", "--seed", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "jaxatt: warning: 2 evaluation runs were used for tuning (same seed 0)" in err
+    assert "were used for tuning" not in (cli.main([*argv, "--duration", "3"]), capsys.readouterr().err)[1]
     with pytest.warns(UserWarning, match="did not finish"):
         gainsfile.read_params(str(gains), "complementary", base=studies.get("complementary").setup(**tuned_on).params)
+    gains.write_text(json.dumps({**d, "settings": {**d["settings"], "config": "two_constant"}}))
+    assert cli.main([*argv, "--duration", "3"]) == 2  # a set-up that is not an object was ignored
+    assert "settings.config must be an object" in capsys.readouterr().err
     d["settings"]["config"]["no_such_setting"] = 1
     gains.write_text(json.dumps(d))
     capsys.readouterr()
