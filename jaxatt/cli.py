@@ -770,15 +770,16 @@ def _finish_study(payload: dict) -> int:
 # tune / evaluate
 # ------------------------------------------------------------------------------------------------------------
 def _default_gains_out(args) -> None:
-    """``args.out`` = :data:`DEFAULT_GAINS_OUT` when not given; a default that exists (without --resume or
-    --overwrite) is refused here, saying it is the default, so the message does not read as the user's path."""
-    if args.out is not None:
-        return
-    args.out = DEFAULT_GAINS_OUT
-    if os.path.exists(args.out) and not (args.resume or args.overwrite):
+    """``args.out`` = :data:`DEFAULT_GAINS_OUT` when not given. An --out that exists (without --resume or
+    --overwrite) is refused here in the flags' words, saying so when it is the default, so the message does not
+    read as the user's path."""
+    default = args.out is None
+    if default:
+        args.out = DEFAULT_GAINS_OUT
+    if args.out and os.path.isfile(args.out) and not (args.resume or args.overwrite):
         raise UserError(
-            f"--out {args.out} (the default) exists: give --out PATH for a new gains file, --resume to continue that "
-            "fit or --overwrite to replace it"
+            f"--out {args.out}{' (the default)' if default else ''} exists: give --out PATH for a new gains file, "
+            "--resume to continue that fit or --overwrite to replace it"
         )
 
 

@@ -426,7 +426,7 @@ def test_tune_then_evaluate_reads_the_gains_file(tmp_path, capsys, monkeypatch):
     assert d["format"] == "jaxatt-gains/2" and d["observer"] == d["study"] == "batista-so3" and d["status"] == "done"
     # a second tune to the same file is refused unless resumed or overwritten
     assert cli.main(["tune", "--experiment", "batista-so3", "--steps", "1", "--out", str(gains)]) == 2
-    assert "exists" in capsys.readouterr().err
+    assert f"--out {gains} exists: give --out PATH for a new gains file, --resume" in capsys.readouterr().err
     # the same without --out: the default gains.json of the working folder, said to be the default
     monkeypatch.chdir(tmp_path)
     (tmp_path / "gains.json").write_bytes(gains.read_bytes())
