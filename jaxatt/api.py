@@ -1070,6 +1070,9 @@ def monte_carlo(
     devices=None,
     previous=None,
     on_chunk=None,
+    out=None,
+    resume: bool = False,
+    overwrite: bool = False,
 ):
     """Monte Carlo of an observer (registered or your own) on a simulated AHRS (:func:`ahrs_scenario` by default,
     ENU): ``runs`` runs of ``duration`` s at 1/``dt`` Hz, run k from key fold_in(PRNGKey(seed), k), metrics reduced
@@ -1080,8 +1083,23 @@ def monte_carlo(
     Returns a :class:`jaxatt.montecarlo.MonteCarloResult`; FloatingPointError names the first run whose metrics
     are not finite. Interrupted (KeyboardInterrupt), it returns the runs finished so far with ``complete=False``
     and a warning: pass that result as ``previous`` to a call with the same arguments to run only the rest.
-    ``on_chunk(result_so_far)`` is called after each chunk of runs (save it there)."""
+    ``on_chunk(result_so_far)`` is called after each chunk of runs.
+
+    ``out`` (a ``.npz`` path): the runs are saved there after every chunk, so a killed process loses at most one
+    chunk. ``resume=True`` continues the runs saved in ``out`` (a call with the same observer, params, scenario,
+    duration, dt, seed, window, hold, precision and trace_every; more ``runs`` extend them) and runs only the
+    rest: a complete file is returned without running. Without a file it starts afresh. An existing ``out`` is
+    otherwise refused unless ``overwrite=True``. :func:`jaxatt.montecarlo.load_result` reads the file back."""
     from . import montecarlo as mc
+
+    if resume and overwrite:
+        raise ValueError(
+            "resume=True and overwrite=True: pass one (resume continues the runs in out, overwrite replaces them)"
+        )
+    if (resume or overwrite) and out is None:
+        raise ValueError(f"{'resume' if resume else 'overwrite'}=True needs out (the .npz file of the runs)")
+    if resume and previous is not None:
+        raise ValueError("previous and resume=True both give the runs done: pass one")
 
     if dtype is None and not jax.config.values["jax_enable_x64"] and params is not None and not isinstance(params, str):
         compute_dtype(*(a for a in jax.tree_util.tree_leaves(params) if hasattr(a, "dtype")), what="params")
@@ -1113,6 +1131,25 @@ def monte_carlo(
         n_check = max(1, min(CHECK_SAMPLES - 1, int(round(duration / step))))
         log, _ = mc.simulate_log(scn, duration=n_check * step, dt=step, seed=int(seed) if isinstance(seed, int) else 0)
         check_own_estimate(obs, p, entry, log, step, dt_, hold)
+    if out is not None:
+        from . import io
+
+        out = io.check_output_path(out, "out", suffixes=(".npz",))
+        spec = _runs_spec(name, p, scn, duration, dt, seed, ws, hold, dt_, trace_every)
+        if resume:
+            previous = _saved_runs(out, spec, name, runs)
+        elif out.exists() and not io.is_special(out) and not overwrite:
+            raise ValueError(
+                f"out {out}: exists; pass resume=True to continue its runs or overwrite=True to replace them"
+            )
+        user_on_chunk = on_chunk
+
+        def on_chunk(result):
+            if io.is_main_process():  # several processes: process 0 writes the file
+                mc.save_runs(out, spec, {name: result})
+            if user_on_chunk is not None:
+                user_on_chunk(result)
+
     res = mc.monte_carlo(
         scn,
         obs,
@@ -1142,3 +1179,45 @@ def monte_carlo(
             stacklevel=2,
         )
     return res
+
+
+def _runs_spec(name, params, scenario, duration, dt, seed, window_start, hold, dtype, trace_every) -> str:
+    """What must match for the runs saved by :func:`monte_carlo` (``out``) to be continued (runs aside)."""
+    import json
+
+    def tree(x):
+        leaves, treedef = jax.tree_util.tree_flatten(x)
+        return {"tree": str(treedef), "leaves": [np.asarray(v).tolist() for v in leaves]}
+
+    spec = {
+        "observer": name,
+        "params": tree(params),
+        "scenario": tree(scenario),
+        "duration": float(duration),
+        "dt": float(dt),
+        "seed": int(seed),
+        "window_start": float(window_start),
+        "hold": hold,
+        "dtype": str(np.dtype(dtype)),
+        "trace_every": int(trace_every),
+    }
+    return json.dumps(spec, sort_keys=True, default=str)
+
+
+def _saved_runs(out, spec: str, name: str, runs: int):
+    """The runs saved in ``out`` by an earlier call with the same ``spec`` (None when there is no file)."""
+    from . import montecarlo as mc
+
+    saved_spec, saved = mc.load_runs(out, "resume", again="pass overwrite=True instead of resume to replace it")
+    if not saved:
+        return None
+    if saved_spec != spec or list(saved) != [name]:
+        raise ValueError(
+            f"resume: {out} holds runs of another call (observer, params, scenario, duration, dt, seed, window, "
+            "hold, precision or trace_every differ); call with the same arguments, or pass overwrite=True instead"
+        )
+    res = saved[name]
+    idx = np.asarray(res.run_indices)
+    if idx.size and idx.max() >= runs:
+        raise ValueError(f"resume: {out} holds runs up to run {int(idx.max())}: ask for runs >= {int(idx.max()) + 1}")
+    return res._replace(complete=len(idx) == runs)

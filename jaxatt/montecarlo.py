@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from typing import Any, Callable, Dict, NamedTuple, Optional, Union
+from typing import Any, Callable, Dict, Mapping, NamedTuple, Optional, Tuple, Union
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +35,9 @@ __all__ = [
     "simulate_log",
     "monte_carlo",
     "MonteCarloResult",
+    "save_runs",
+    "load_runs",
+    "load_result",
     "check_dt",
     "whole_steps",
     "run_keys",
@@ -654,6 +657,78 @@ def monte_carlo(
             raise
         return result(False)
     return result(True)
+
+
+def save_runs(path, spec: str, results: Mapping[str, MonteCarloResult]) -> None:
+    """Write Monte Carlo results (label -> :class:`MonteCarloResult`) and the ``spec`` of the call that made them
+    (a string: what must match to continue them) as one NPZ, atomically. Read back with :func:`load_runs`."""
+    from . import io
+
+    arrays: Dict[str, Any] = {"spec": np.asarray(spec), "labels": np.asarray(list(results), dtype=str)}
+    for i, res in enumerate(results.values()):
+        arrays[f"{i}/run_indices"] = res.run_indices
+        arrays[f"{i}/complete"] = np.asarray(res.complete)
+        arrays[f"{i}/wall_s"] = np.asarray(res.wall_s)
+        if res.first_nonfinite_t is not None:
+            arrays[f"{i}/first_nonfinite_t"] = res.first_nonfinite_t
+        for k, v in res.per_run.items():
+            arrays[f"{i}/per_run/{k}"] = v
+        for k, v in (res.traces or {}).items():
+            arrays[f"{i}/traces/{k}"] = v
+    io.write_npz(path, arrays)
+
+
+def load_runs(path, name: str = "path", again: str = "") -> Tuple[Optional[str], Dict[str, MonteCarloResult]]:
+    """(spec, label -> :class:`MonteCarloResult`) written by :func:`save_runs`; (None, {}) when there is no file.
+    ValueError starting with ``name`` (and ending with ``again``, what to do) for a file that is not one."""
+    import os
+    import zipfile
+
+    if not os.path.exists(path):
+        return None, {}
+    try:
+        z = np.load(path)
+        if not hasattr(z, "files"):  # a bare .npy array, not the archive save_runs writes
+            raise ValueError("not an .npz archive")
+        with z:
+            d = {k: z[k] for k in z.files}
+        d["labels"], d["spec"]  # noqa: B018 (both are always written)
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+        raise ValueError(
+            f"{name}: {path} is not a runs file of jaxatt (empty, damaged or another file)"
+            + (f"; {again}" if again else "")
+        ) from None
+    out = {}
+    for i, label in enumerate(d["labels"].tolist()):
+        pre = f"{i}/"
+        per_run = {k[len(pre + "per_run/") :]: v for k, v in d.items() if k.startswith(pre + "per_run/")}
+        traces = {k[len(pre + "traces/") :]: v for k, v in d.items() if k.startswith(pre + "traces/")}
+        out[label] = MonteCarloResult(
+            per_run,
+            traces or None,
+            d[pre + "run_indices"],
+            float(d[pre + "wall_s"]),
+            bool(d[pre + "complete"]),
+            d.get(pre + "first_nonfinite_t"),
+        )
+    return str(d["spec"]), out
+
+
+def load_result(path) -> MonteCarloResult:
+    """The :class:`MonteCarloResult` saved by ``jaxatt.monte_carlo(..., out=path)`` (ValueError naming ``path`` if
+    it holds no runs, or the runs of several observers: a study's runs file; read those with :func:`load_runs`)."""
+    _, saved = load_runs(path, "path")
+    if len(saved) != 1:
+        raise ValueError(
+            f"path {path}: "
+            + (
+                "no such file"
+                if not saved
+                else f"holds the runs of {len(saved)} observers "
+                f"({', '.join(saved)}): read them with jaxatt.montecarlo.load_runs"
+            )
+        )
+    return next(iter(saved.values()))
 
 
 def _check_previous(previous, runs: int, trace_every: int) -> None:

@@ -927,6 +927,51 @@ def test_an_interrupted_monte_carlo_warns_and_continues_from_its_result():
             np.testing.assert_array_equal(rest.per_run[k], v, err_msg=k)
 
 
+def test_a_monte_carlo_saved_to_a_file_is_resumed_from_it(tmp_path):
+    """``out=``: the runs are saved after every chunk, so a process that dies keeps them; ``resume=True`` runs the
+    rest (the numbers of one uninterrupted call), returns a complete file without running, extends it to more
+    runs, and refuses a file of another call; an existing file is not replaced without ``overwrite=True``."""
+    from jaxatt import montecarlo
+
+    kw = dict(duration=0.5, chunk=2, seed=1)
+    full = jaxatt.monte_carlo("mahony", runs=4, **kw)
+    out = tmp_path / "mc.npz"
+
+    def die(_):  # the process is stopped after its first chunk: what was saved is what the file holds
+        raise KeyboardInterrupt
+
+    with pytest.warns(UserWarning, match="interrupted after 2 of 4 runs"):
+        jaxatt.monte_carlo("mahony", runs=4, **kw, out=out, on_chunk=die)
+    saved = montecarlo.load_result(out)
+    assert list(saved.run_indices) == [0, 1] and not saved.complete
+    seen = []
+    rest = jaxatt.monte_carlo("mahony", runs=4, **kw, out=out, resume=True, on_chunk=seen.append)
+    assert rest.complete and list(rest.run_indices) == [0, 1, 2, 3] and len(seen) == 1  # one chunk run, not two
+    for k, v in full.per_run.items():
+        np.testing.assert_array_equal(rest.per_run[k], v, err_msg=k)
+        np.testing.assert_array_equal(montecarlo.load_result(out).per_run[k], v, err_msg=k)
+    again = jaxatt.monte_carlo("mahony", runs=4, **kw, out=out, resume=True, on_chunk=seen.append)
+    assert len(seen) == 1 and again.complete  # complete: nothing run
+    more = jaxatt.monte_carlo("mahony", runs=6, **kw, out=out, resume=True)
+    assert list(more.run_indices) == list(range(6))
+    np.testing.assert_array_equal(more.per_run["mean_angle_error_deg"][:4], full.per_run["mean_angle_error_deg"])
+    for call, match in (
+        (dict(runs=6, **kw, out=out), r"out .*mc\.npz: exists; pass resume=True .* or overwrite=True"),
+        (dict(runs=6, **{**kw, "seed": 2}, out=out, resume=True), r"holds runs of another call"),
+        (dict(runs=3, **kw, out=out, resume=True), r"holds runs up to run 5: ask for runs >= 6"),
+        (dict(runs=6, **kw, out=out, resume=True, overwrite=True), r"pass one"),
+        (dict(runs=6, **kw, resume=True), r"resume=True needs out"),
+        (dict(runs=6, **kw, out=tmp_path / "mc.json"), r"unknown extension"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            jaxatt.monte_carlo("mahony", **call)
+    (tmp_path / "junk.npz").write_text("not an archive")
+    with pytest.raises(ValueError, match="junk.npz is not a runs file of jaxatt"):
+        jaxatt.monte_carlo("mahony", runs=2, **kw, out=tmp_path / "junk.npz", resume=True)
+    replaced = jaxatt.monte_carlo("mahony", runs=2, **kw, out=out, overwrite=True)
+    assert list(montecarlo.load_result(out).run_indices) == [0, 1] and replaced.complete
+
+
 def test_float64_gains_of_a_monte_carlo_without_x64_are_warned_about():
     """As jaxatt.filter warns for float64 data: float64 gains computed in float32 (x64 off) are said."""
     with jax.enable_x64(False):

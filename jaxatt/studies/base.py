@@ -24,7 +24,6 @@ import math
 import numbers
 import time
 import typing
-import zipfile
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import jax
@@ -552,7 +551,7 @@ def reproduce(
             payload["observers"][label] = entry(res)
             _finish(payload, complete=False, n_observers=len(obs))
             if runs_file(json_path):
-                _write_runs(runs_file(json_path), spec, {**results, label: res})
+                montecarlo.save_runs(runs_file(json_path), spec, {**results, label: res})
             if not keep_complete:
                 io.write_json(json_path, payload)
 
@@ -618,7 +617,7 @@ def reproduce(
         payload["plot"] = plot_path
         print(f"plot written to {plot_path}")
     if runs_file(json_path):
-        _write_runs(runs_file(json_path), spec, results)
+        montecarlo.save_runs(runs_file(json_path), spec, results)
     on_disk = {**payload, "complete": False} if pending else payload
     if on_disk["complete"] or not keep_complete:
         io.write_json(json_path, on_disk)
@@ -681,60 +680,18 @@ def _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every=None) -> str
     )
 
 
-def _write_runs(path, spec: str, results: Mapping[str, Any]) -> None:
-    arrays: Dict[str, Any] = {"spec": np.asarray(spec), "labels": np.asarray(list(results), dtype=str)}
-    for i, res in enumerate(results.values()):
-        arrays[f"{i}/run_indices"] = res.run_indices
-        arrays[f"{i}/complete"] = np.asarray(res.complete)
-        arrays[f"{i}/wall_s"] = np.asarray(res.wall_s)
-        if res.first_nonfinite_t is not None:
-            arrays[f"{i}/first_nonfinite_t"] = res.first_nonfinite_t
-        for k, v in res.per_run.items():
-            arrays[f"{i}/per_run/{k}"] = v
-        for k, v in (res.traces or {}).items():
-            arrays[f"{i}/traces/{k}"] = v
-    io.write_npz(path, arrays)
-
-
 def _read_runs(path, spec: str) -> Dict[str, Any]:
-    """label -> MonteCarloResult saved by :func:`_write_runs`; {} when there is no file."""
-    import os
+    """label -> MonteCarloResult of the runs file ``path`` of the same set-up; {} when there is no file."""
+    from ..montecarlo import load_runs
 
-    from ..montecarlo import MonteCarloResult
-
-    if not os.path.exists(path):
-        return {}
-    try:
-        z = np.load(path)
-        if not hasattr(z, "files"):  # a bare .npy array, not the archive _write_runs writes
-            raise ValueError("not an .npz archive")
-        with z:
-            d = {k: z[k] for k in z.files}
-        d["labels"], d["spec"]  # noqa: B018 (both are always written)
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
-        raise ValueError(
-            f"--resume: {path} is not a runs file of jaxatt (empty, damaged or another file); delete it to start again"
-        ) from None
-    if str(d.get("spec")) != spec:
+    saved_spec, results = load_runs(path, "--resume", again="delete it to start again")
+    if results and saved_spec != spec:
         raise ValueError(
             f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision, gains "
             "or --plot differ); "
             "rerun with the same flags, or without --resume to start again"
         )
-    out = {}
-    for i, label in enumerate(d["labels"].tolist()):
-        pre = f"{i}/"
-        per_run = {k[len(pre + "per_run/") :]: v for k, v in d.items() if k.startswith(pre + "per_run/")}
-        traces = {k[len(pre + "traces/") :]: v for k, v in d.items() if k.startswith(pre + "traces/")}
-        out[label] = MonteCarloResult(
-            per_run,
-            traces or None,
-            d[pre + "run_indices"],
-            float(d[pre + "wall_s"]),
-            bool(d[pre + "complete"]),
-            d.get(pre + "first_nonfinite_t"),
-        )
-    return out
+    return results
 
 
 def _is_complete(json_path) -> bool:
