@@ -253,7 +253,11 @@ def _estimate(out, want: str, other: str, convert):
 
 
 def estimate_r(out):
-    """The sensor-to-navigation rotation (..., 3, 3) of an observer output: ``out.r``, else from ``out.q``."""
+    """The sensor-to-navigation rotation (..., 3, 3) of an observer output: from ``out.q`` when it has one (the
+    estimate is read from q first everywhere, as in :func:`estimate_q` and :func:`check_observer`: an output's
+    ``r`` beside a ``q`` may be a diagnostic), else ``out.r``."""
+    if _field(out, "q") is not None:
+        return so3.quat_to_matrix(_field(out, "q"))
     return _estimate(out, "r", "q", so3.quat_to_matrix)
 
 

@@ -185,7 +185,8 @@ class Observer(NamedTuple):
     * ``init(params, first_sample) -> state``: the state at the time of the first sample.
     * ``step(params, state, u, dt) -> (state, out)``: advances the state by ``dt`` seconds; ``u`` is the input
       of the step (a sample, or an :class:`Interval` of two; see :data:`HOLDS`). ``out`` is the estimate at the
-      end of the step and carries it as a field ``q`` (w, x, y, z) and/or ``r`` (3x3), body to navigation frame.
+      end of the step and carries it as a field ``q`` (w, x, y, z) or ``r`` (3x3), body to navigation frame
+      (with both, the estimate is read from ``q``).
     * ``output(params, state) -> out`` (optional): the estimate held by a state, with the structure ``step``
       returns; gives estimate 0 (``init``'s). Without it the state's own ``q`` or ``r`` field is used.
     * ``name``: a label for messages and files.

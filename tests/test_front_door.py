@@ -325,6 +325,24 @@ def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log(tmp_path
     assert res.per_run["mean_angle_error_deg"][0] == pytest.approx(err[window].mean(), rel=1e-9)
 
 
+def test_the_estimate_is_read_from_q_everywhere_when_an_output_also_has_r():
+    """An output with a diagnostic ``r`` beside its estimate ``q`` (here a (3,) residual): the Monte Carlo scores
+    ``q`` as jaxatt.filter does (it scored ``r``, or failed in the scan when ``r`` was not 3x3)."""
+
+    def step_with_residual(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        return new, {"t": out.t, "q": out.q, "r": so3.unit(s.acc)}
+
+    def output(p, st):
+        return {"t": st.t, "q": st.q, "r": jnp.zeros(3, st.q.dtype)}
+
+    with_r = Observer(my_init, step_with_residual, "my_mahony_r", output)
+    kw = dict(runs=2, duration=2.0, seed=3)
+    a, b = jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, **kw), jaxatt.monte_carlo(with_r, MY_PARAMS, **kw)
+    for k in ("final_angle_error_deg", "mean_angle_error_deg", "max_angle_error_deg"):
+        np.testing.assert_allclose(b.per_run[k], a.per_run[k], rtol=1e-12, err_msg=k)
+
+
 @pytest.fixture(scope="module")
 def quiet_log():
     scn = jaxatt.api.ahrs_scenario(gyro_noise_std=1e-4, acc_noise_std=0.01, mag_noise_std=0.05, gyro_bias=(0, 0, 0))
