@@ -601,6 +601,45 @@ def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
     assert fitter.devices_for_batches([16, 3]) == 1
 
 
+def test_fit_takes_your_params_as_a_dict_a_dataclass_or_nested_and_returns_them_in_their_shape(tmp_path):
+    """Params of any pytree shape are tuned leaf by leaf (they were refused, or a nested field crashed in the trace
+    or was silently left fixed): the same gains as the NamedTuple fit of the same observer, returned in the
+    caller's shape; the gains file names the leaves and is read back into that shape."""
+    from jaxatt.fitting import gainsfile
+
+    @jax.tree_util.register_dataclass
+    @dataclasses.dataclass
+    class Gains:
+        kp: jax.Array
+        ki: jax.Array
+
+    as_named = {  # how each shape reads as MY_OBSERVER's MyParams
+        "dict": ({"kp": MY_PARAMS.kp, "ki": MY_PARAMS.ki}, lambda p: MyParams(p["kp"], p["ki"])),
+        "dataclass": (Gains(MY_PARAMS.kp, MY_PARAMS.ki), lambda p: MyParams(p.kp, p.ki)),
+        "nested": (
+            {"acc": {"kp": MY_PARAMS.kp}, "bias": (MY_PARAMS.ki,)},
+            lambda p: MyParams(p["acc"]["kp"], p["bias"][0]),
+        ),
+    }
+    trials = [_tiny_trial()]
+    ref = jaxatt.fit(MY_OBSERVER, MY_PARAMS, trials, steps=3, lr=0.2)
+    for shape, (params, named) in as_named.items():
+        obs = Observer(
+            lambda p, s, named=named: my_init(named(p), s),
+            lambda p, st, s, dt, named=named: my_step(named(p), st, s, dt),
+            shape,
+        )
+        out = tmp_path / f"{shape}.json"
+        res = jaxatt.fit(obs, params, trials, steps=3, lr=0.2, out=str(out))
+        assert jax.tree_util.tree_structure(res.params) == jax.tree_util.tree_structure(params), shape
+        got = named(res.params)
+        np.testing.assert_allclose([got.kp, got.ki], [ref.params.kp, ref.params.ki], rtol=1e-6, err_msg=shape)
+        saved = json.loads(out.read_text())["gains"]
+        back = named(gainsfile.apply(params, saved))
+        np.testing.assert_allclose([back.kp, back.ki], [got.kp, got.ki], rtol=1e-12, err_msg=shape)
+    assert set(json.loads((tmp_path / "nested.json").read_text())["gains"]) == {"acc_kp", "bias_0"}
+
+
 def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     with pytest.raises(ValueError, match="resume=True needs out"):
         jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, resume=True)

@@ -42,8 +42,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import engine, io
-from ..types import MAX_RUNS, check_seed
-from . import gainsfile
+from ..types import MAX_RUNS, Observer, check_seed
+from . import flatparams, gainsfile
 from . import parametrize as P
 
 __all__ = [
@@ -636,7 +636,9 @@ def fit(
             the optimizer (``lr`` default 0.05 for Adam; for L-BFGS 1, the full quasi-Newton step).
         tune / freeze / masks / method / transforms: which gains move and how (registered observers: their
             declared gains, those tuned by default unless ``tune``; your own: every positive Params field unless
-            ``tune``). Bounded gains stay inside their bounds.
+            ``tune``). Bounded gains stay inside their bounds. Your own params may be any pytree (a NamedTuple, a
+            dict, a registered dataclass, nested ones): each leaf is a gain named by its path (``acc_k`` for
+            ``params.acc.k``, :mod:`jaxatt.fitting.flatparams`), and ``FitResult.params`` has your params' shape.
         start: start from these gains (gains-file path, dict, or ``fn(params) -> params``).
         batch: items (runs or trials) per gradient (default: 8 runs for studies, every trial for trials).
         val: validation trials (recorded; default none) ; for studies the ``val_runs`` runs after the training
@@ -705,6 +707,15 @@ def fit(
         raise ValueError(
             "resume=True and overwrite=True: pass one (resume continues the fit saved in out, overwrite replaces it)"
         )
+    rebuild = None
+    if isinstance(observer, Observer) and params is not None and not isinstance(params, str):
+        if not hasattr(params, "_fields") or flatparams.needs_flat_view(params):
+            # your own params as a dict, a dataclass or nested: tuned as one named gain per leaf, returned in
+            # their own shape (the gains file names the leaves: flatparams.leaf_names)
+            params, rebuild = flatparams.flat_view(params)
+            observer = flatparams.observer_on_view(observer, rebuild)
+            if callable(start):
+                start = _start_on_view(start, rebuild)
     final_path = io.check_output_path(out, "out", suffixes=io.JSON_SUFFIXES)
     out_path, previous = final_path, None
     if final_path is not None:
@@ -779,6 +790,8 @@ def fit(
             file=sys.stderr,
             flush=True,
         )
+    if rebuild is not None:
+        res = res._replace(params=rebuild(res.params), start_params=rebuild(res.start_params))
     if res.status == "non-finite":
         warnings.warn(
             "fit: stopped on a non-finite loss or gradient (three steps in a row, or at the last step); "
@@ -787,6 +800,15 @@ def fit(
             stacklevel=2,
         )
     return res
+
+
+def _start_on_view(start, rebuild):
+    """``start`` (a function of your params) as a function of their flat view."""
+
+    def on_view(view):
+        return type(view)(*jax.tree_util.tree_leaves(start(rebuild(view))))
+
+    return on_view
 
 
 #: the optimizers of :func:`optimize` / :func:`fit`

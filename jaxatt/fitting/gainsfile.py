@@ -187,7 +187,14 @@ def _checked(d: dict, path) -> dict:
 
 def apply(params, gains: Mapping[str, Any], *, source: str = "gains"):
     """``params`` with the values of a gains dict (this format's ``gains``, or field -> value) put in. Shapes must
-    match; a schedule's switch times come from the dict when it carries them. ValueError naming the field."""
+    match; a schedule's switch times come from the dict when it carries them. ValueError naming the field.
+    Params of another pytree shape (a dataclass, nested fields) take gains named by their leaves, as a fit of them
+    writes (:mod:`jaxatt.fitting.flatparams`), and keep their shape."""
+    from . import flatparams
+
+    if flatparams.needs_flat_view(params):
+        view, rebuild = flatparams.flat_view(params)
+        return rebuild(apply(view, gains, source=source))
     values = _fields(params)
     new = {}
     for name, entry in gains.items():
