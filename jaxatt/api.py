@@ -237,13 +237,29 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
 
 
 def _warn_implausible(
-    gyr: np.ndarray, acc: Optional[np.ndarray], mag: Optional[np.ndarray], ts: np.ndarray, from_dt: bool = False
+    gyr: np.ndarray,
+    acc: Optional[np.ndarray],
+    mag: Optional[np.ndarray],
+    ts: np.ndarray,
+    from_dt: bool = False,
+    where: str = "",
+    api: str = "jaxatt.filter",
+    cli: str = "jaxatt filter",
+    stacklevel: int = 3,
 ):
     """Warn (never refuse) about data that looks like the wrong units: gyro beyond 35 rad/s (2000 deg/s, the
     widest common range: deg/s given as rad/s?), specific force near 1 instead of 9.81 (g units?), a median sample
     interval above 1 s (ms timestamps?), gaps longer than 10 median intervals, a sensor with no present reading
     (acc / mag: every row NaN or zero), a gyro that turns over 5x as far as acc and mag do
-    (:func:`gyro_rotation_ratio`: deg/s during slow motion)."""
+    (:func:`gyro_rotation_ratio`: deg/s during slow motion). ``where`` starts each warning (e.g. "log walk.csv: ");
+    ``api`` / ``cli`` name the function and the command whose unit arguments convert the data."""
+    notes = _implausible_notes(gyr, acc, mag, ts, from_dt, api, cli)
+    for note in notes:
+        warnings.warn(where + note, stacklevel=stacklevel)
+
+
+def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> List[str]:
+    dt_hint = "dt= / --dt" if cli == "jaxatt filter" else "dt="
     with np.errstate(invalid="ignore", over="ignore"):  # |acc| of huge readings: inf, said later
         notes = []
         if not np.isfinite(gyr).any():
@@ -256,12 +272,12 @@ def _warn_implausible(
         if g > 35.0:
             notes.append(
                 f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s "
-                "(gyr_unit='deg/s' in jaxatt.filter, --gyr-unit deg/s in jaxatt filter, converts it)"
+                f"(gyr_unit='deg/s' in {api}, --gyr-unit deg/s in {cli}, converts it)"
             )
         elif ratio is not None and ratio > 5.0:
             notes.append(
                 f"the gyro turns {ratio:.3g}x as far as the accelerometer and magnetometer do: is gyr in deg/s "
-                "(57x)? jaxatt expects rad/s (gyr_unit='deg/s' in jaxatt.filter, --gyr-unit deg/s in jaxatt filter, "
+                f"(57x)? jaxatt expects rad/s (gyr_unit='deg/s' in {api}, --gyr-unit deg/s in {cli}, "
                 "converts it)"
             )
         if acc is not None and np.isfinite(acc).any():
@@ -269,7 +285,7 @@ def _warn_implausible(
             if 0.5 < acc_norm < 2.0:
                 notes.append(
                     f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest; "
-                    "acc_unit='g' in jaxatt.filter, --acc-unit g in jaxatt filter, converts it)"
+                    f"acc_unit='g' in {api}, --acc-unit g in {cli}, converts it)"
                 )
         d = np.diff(ts)
         step = float(np.median(d))
@@ -278,13 +294,13 @@ def _warn_implausible(
             if from_dt:  # the user's own sample period, not timestamps
                 notes.append(
                     f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s (time_unit='{unit}' in "
-                    "jaxatt.filter converts it)"
+                    f"{api} converts it)"
                 )
             else:
                 notes.append(
                     f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
-                    f"(time_unit='{unit}' in jaxatt.filter, --time-unit {unit} in jaxatt filter, converts them; or "
-                    "give the sample period: dt= / --dt)"
+                    f"(time_unit='{unit}' in {api}, --time-unit {unit} in {cli}, converts them; or "
+                    f"give the sample period: {dt_hint})"
                 )
         gaps = d > 10.0 * step
         if gaps.any():
@@ -293,8 +309,7 @@ def _warn_implausible(
                 f"{int(gaps.sum())} sample intervals are longer than 10x the median ({step:.3g} s), the longest "
                 f"{d[k]:.4g} s after t = {ts[k]:.6g} s (sample {k}): the gyro is integrated across each gap"
             )
-    for note in notes:
-        warnings.warn(note, stacklevel=3)
+    return notes
 
 
 def _times(t, dt, n: int):

@@ -22,7 +22,7 @@ import sys
 import threading
 import warnings
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Mapping, Optional
 
 import numpy as np
 
@@ -192,10 +192,11 @@ def _trial_source_flags(p: argparse.ArgumentParser):
     p.add_argument("--gyr-unit", choices=GYR_UNITS, default=None, help="--logs: unit of the gyro columns (rad/s)")
     p.add_argument("--acc-unit", choices=ACC_UNITS, default=None, help="--logs: unit of the accelerometer (m/s^2)")
     p.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="--logs: unit of the t column (s)")
+    p.add_argument("--dt", type=_positive, default=None, help="--logs: the sample period (s) of logs without t")
 
 
 #: the flags of :func:`_trial_source_flags` that only --logs takes
-_LOG_READING_FLAGS = ("--truth-frame", "--columns", "--gyr-unit", "--acc-unit", "--time-unit")
+_LOG_READING_FLAGS = ("--truth-frame", "--columns", "--gyr-unit", "--acc-unit", "--time-unit", "--dt")
 
 
 def _trials_of(args):
@@ -213,9 +214,18 @@ def _trials_of(args):
 
     units = {k: getattr(args, k) or v for k, v in _SI_UNITS.items()}
     frame = args.truth_frame or "ENU"
-    stems = [Path(p).stem for p in args.logs]
-    names = [str(Path(p).with_suffix("")) if stems.count(st) > 1 else st for p, st in zip(args.logs, stems)]
-    return [logs.load_trial(p, frame=frame, name=n, columns=args.columns, **units) for p, n in zip(args.logs, names)]
+    return [
+        logs.load_trial(p, frame=frame, name=n, columns=args.columns, dt=args.dt, **units)
+        for p, n in zip(args.logs, _log_names(args.logs))
+    ]
+
+
+def _log_names(paths) -> list:
+    """A trial name per log: its stem; where stems repeat, the path without its suffix (logs of other folders);
+    where those repeat too, the path as given (walk.csv and walk.npz)."""
+    stems = [Path(p).stem for p in paths]
+    names = [str(Path(p).with_suffix("")) if stems.count(st) > 1 else st for p, st in zip(paths, stems)]
+    return [str(p) if names.count(n) > 1 else n for p, n in zip(paths, names)]
 
 
 def _trial_inputs(args) -> dict:
@@ -243,14 +253,18 @@ def _output_flags(p: argparse.ArgumentParser):
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block): ``jaxatt tune: error: argument --steps: ... (see --help)``."""
 
+    #: command -> its parser (the top-level parser's; main reports an unknown flag through the command's)
+    subparsers: Mapping[str, argparse.ArgumentParser] = {}
+
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser() -> _Parser:
     ap = _Parser(prog="jaxatt", description="Batched, differentiable attitude observers in JAX.")
     ap.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = ap.add_subparsers(dest="command", required=True)
+    ap.subparsers = sub.choices
 
     fp = sub.add_parser("filter", help="run an observer on your own log (CSV / NPZ / BROAD HDF5) and write estimates")
     fp.add_argument("--log", required=True, help="CSV or NPZ log (jaxatt.data.logs) or a BROAD .hdf5 trial")
@@ -770,17 +784,33 @@ def _finish_study(payload: dict) -> int:
 # tune / evaluate
 # ------------------------------------------------------------------------------------------------------------
 def _default_gains_out(args) -> None:
-    """``args.out`` = :data:`DEFAULT_GAINS_OUT` when not given. An --out that exists (without --resume or
-    --overwrite) is refused here in the flags' words, saying so when it is the default, so the message does not
-    read as the user's path."""
-    default = args.out is None
-    if default:
-        args.out = DEFAULT_GAINS_OUT
-    if args.out and os.path.isfile(args.out) and not (args.resume or args.overwrite):
+    """``args.out`` = :data:`DEFAULT_GAINS_OUT` when not given; a default that exists (without --resume or
+    --overwrite) is refused here, saying it is the default, so the message does not read as the user's path."""
+    if args.out is not None:
+        return
+    args.out = DEFAULT_GAINS_OUT
+    if os.path.exists(args.out) and not (args.resume or args.overwrite):
         raise UserError(
-            f"--out {args.out}{' (the default)' if default else ''} exists: give --out PATH for a new gains file, "
-            "--resume to continue that fit or --overwrite to replace it"
+            f"--out {args.out} (the default) exists: give --out PATH for a new gains file, --resume to continue that "
+            "fit or --overwrite to replace it"
         )
+
+
+def _existing_gains_out(args) -> None:
+    """An --out gains file that exists, without --resume or --overwrite, refused in the flags' words before the fit
+    starts (after the output-path checks, which name a folder, a data file or the --init-gains file)."""
+    if not (args.out and os.path.isfile(args.out)) or args.resume or args.overwrite:
+        return
+    from .fitting import gainsfile
+
+    try:
+        gainsfile.read(args.out)
+    except ValueError as e:
+        raise UserError(f"--out {args.out}: exists and is not a gains file, so it is not replaced ({e})") from None
+    raise UserError(
+        f"--out {args.out} exists: give --out PATH for a new gains file, --resume to continue that fit or "
+        "--overwrite to replace it"
+    )
 
 
 def _tune(args) -> int:
@@ -801,6 +831,7 @@ def _tune(args) -> int:
                 f"loss draws no runs; leave {'them' if two else 'it'} out, or use --objective montecarlo)"
             )
     io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES)
+    _existing_gains_out(args)
     config = {"duration": args.duration} if args.duration is not None else None
     from .progress import Heartbeat
 
@@ -985,6 +1016,12 @@ def _broad(args) -> int:
 
     observer, params = _observer_and_params(args)
     trials = _trials_of(args)
+    if not any(np.any(broad.scored_samples(tr)) for tr in trials):  # nothing to score: not a table of NaN, exit 0
+        raise UserError(
+            "no trial has a scored sample (movement with a finite ground truth): "
+            f"{', '.join(tr.name for tr in trials)} {'has' if len(trials) == 1 else 'have'} no ground truth to score "
+            "against"
+        )
     dtype = "float32" if args.float32 else "float64"
     with Heartbeat(f"running {args.observer} on {len(trials)} trials", bool(_progress(args))):
         score = api.broad_score(observer, params, trials, dtype=dtype, offline=args.offline)
@@ -1030,6 +1067,7 @@ def _broad_tune(args) -> int:
         suffixes=io.JSON_SUFFIXES,
         inputs={"--init-gains": args.init_gains, **_trial_inputs(args)},
     )
+    _existing_gains_out(args)
     trials = _trials_of(args)
     from .progress import Heartbeat
 
@@ -1429,7 +1467,10 @@ def _join_negative_lists(argv: List[str]) -> List[str]:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    args = _parser().parse_args(_join_negative_lists(list(sys.argv[1:] if argv is None else argv)))
+    parser = _parser()
+    args, unknown = parser.parse_known_args(_join_negative_lists(list(sys.argv[1:] if argv is None else argv)))
+    if unknown:  # said by the command's parser, so the message points to its --help
+        parser.subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         _IMPORTING.append(True)
         import jax

@@ -335,6 +335,11 @@ BAD_INPUT = [
     ),
     # a study's gains file with a value its theorem refuses: named by the file, the array on the same line
     (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/so3_negative.json"], r"so3_negative.*alpha1.*-1"),
+    # an unknown flag is said by the command, pointing to its own help
+    (
+        ["broad", "--data-dir", "{d}/trials_ok", "--nonsense"],
+        r"^jaxatt broad: error: .* --nonsense \(see jaxatt broad --help\)",
+    ),
     # continue the fit in --out, or replace it: not both
     (["tune", "--experiment", "batista-so3", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"not allowed"),
     (["broad-tune", "--data-dir", "{d}/trials_ok", "--out", "{d}/keep.json", "--resume", "--overwrite"], r"--resume"),
@@ -412,25 +417,30 @@ def test_an_output_that_is_a_device_or_fifo_is_written_into_not_replaced(tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]  # no temporary left behind
 
 
-def test_broad_trial_without_ground_truth_is_said_not_failed(files, capsys):
+def test_broad_trial_without_ground_truth_is_said_not_failed(files, tmp_path, capsys):
     """NaN ground truth is BROAD's documented 'no reference here': a trial with none is NaN, said, and left out of
-    the means (exit 0); a trial with truth is scored."""
-    rc = cli.main(
-        [
-            "broad",
-            "--data-dir",
-            str(files / "trials_no_truth"),
-            "--observer",
-            "madgwick",
-            "--json",
-            str(files / "b.json"),
-        ]
-    )
-    assert rc == 0
+    the means (exit 0); a trial with truth is scored. With no trial to score, there is no result: exit 2 before
+    running (it printed a table of NaN and exited 0)."""
+    import shutil
+
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for folder in ("trials_no_truth", "trials_ok"):
+        for f in (files / folder).glob("*.hdf5"):
+            shutil.copy(f, mixed / f.name)
+    argv = ["broad", "--observer", "madgwick", "--json", str(tmp_path / "b.json")]
+    assert cli.main([*argv, "--data-dir", str(mixed)]) == 0
     assert "01_no_truth has no ground truth" in capsys.readouterr().out
-    d = json.loads((files / "b.json").read_text())
-    assert np.isnan(d["trials"]["01_no_truth"]["total_rmse_deg"]) and d["groups"] == {}
-    (files / "b.json").unlink()
+    d = json.loads((tmp_path / "b.json").read_text())
+    assert np.isnan(d["trials"]["01_no_truth"]["total_rmse_deg"]) and d["groups"]["all"]["n_trials"] == 1
+    (tmp_path / "b.json").unlink()
+    assert cli.main([*argv, "--data-dir", str(files / "trials_no_truth")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "jaxatt: error: no trial has a scored sample (movement with a finite ground truth): 01_no_truth has no "
+        "ground truth to score against"
+    )
+    assert not (tmp_path / "b.json").exists()
     trials = jaxatt.data.broad.load(files / "trials_no_truth") + jaxatt.data.broad.load(files / "trials_ok")
     with pytest.warns(UserWarning, match=r"no scored sample .* in trial 01_no_truth: its metrics are NaN"):
         score = jaxatt.broad_score("madgwick", None, trials)

@@ -654,6 +654,22 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys, monkeypatch):
     shutil.copy(paths[0], twin)
     assert cli.main(["broad", "--logs", paths[0], twin, "--truth-frame", "NED", "--json", str(mine)]) == 0
     assert set(json.loads(mine.read_text())["trials"]) == {str(Path(p).with_suffix("")) for p in (paths[0], twin)}
+    # the same recording as an NPZ beside its CSV (one stem): named by their paths (it was refused as one name)
+    npz = str(Path(paths[0]).with_suffix(".npz"))
+    logs.save_log(npz, *logs.load_log(paths[0], with_truth=True))
+    assert cli.main(["broad", "--logs", paths[0], npz, "--truth-frame", "NED", "--json", str(mine)]) == 0
+    both = json.loads(mine.read_text())["trials"]
+    assert set(both) == {paths[0], npz}
+    for m in ("total_rmse_deg", "heading_rmse_deg", "inclination_rmse_deg"):  # the CSV's text: the last bit may differ
+        assert both[npz][m] == pytest.approx(both[paths[0]][m], rel=1e-12), m
+    # a log without timestamps, timed by --dt: the score of the log with them (--dt was only in the hint)
+    rows = Path(paths[0]).read_text().splitlines()
+    no_t = tmp_path / "no_t.csv"
+    no_t.write_text("\n".join(",".join(r.split(",")[1:]) for r in rows) + "\n")
+    dt = 1.0 / trials[0].rate_hz
+    assert cli.main(["broad", "--logs", str(no_t), "--dt", str(dt), "--truth-frame", "NED", "--json", str(mine)]) == 0
+    timed = json.loads(mine.read_text())["trials"]["no_t"]
+    assert timed["total_rmse_deg"] == pytest.approx(both[paths[0]]["total_rmse_deg"], rel=1e-6)
 
 
 def test_cpu_device_count_and_the_command_splits_runs_over_the_cores(tmp_path):

@@ -202,6 +202,11 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
         trial = logs.load_trial(path, frame="NED", group="mine", **kw)
     with pytest.warns(UserWarning, match=r"the ground truth's vertical is 1[78]\d deg from the accelerometer's"):
         logs.load_trial(path, **kw)  # the NED truth read as ENU
+    forgot = {k: v for k, v in kw.items() if k != "acc_unit"}  # the units check of jaxatt.filter, on the trial path
+    with pytest.warns(
+        UserWarning, match=r"log .*phone.csv: the median \|acc\| is 1: is it in g\? .*acc_unit='g' in load"
+    ):
+        logs.load_trial(path, frame="NED", **forgot)
     assert trial.name == "phone" and trial.group == "mine" and trial.rate_hz == pytest.approx(100.0)
     np.testing.assert_allclose(np.abs(np.sum(trial.quat_true * q_enu, axis=-1)), 1.0, atol=1e-12)  # q or -q
     np.testing.assert_allclose(trial.samples.gyr, s.gyr, rtol=1e-13)

@@ -722,6 +722,18 @@ def load_trial(
     if not isinstance(group, str) or not group.strip() or group == "all":
         raise ValueError(f"group must be a label (text, not 'all'), got {group!r}")
     _warn_truth_frame(q, samples.acc, f"log {path}")
+    from .. import api  # the front door's units check, as jaxatt.filter makes it (imported when it runs: no cycle)
+
+    api._warn_implausible(
+        np.asarray(samples.gyr, float),
+        np.asarray(samples.acc, float),
+        None if samples.mag is None else np.asarray(samples.mag, float),
+        np.asarray(samples.t, float),
+        from_dt=dt is not None,
+        where=f"log {path}: ",
+        api="load_trial",
+        cli="jaxatt broad / broad-tune",
+    )
     trial = broad.Trial(
         Path(path).stem if name is None else name,
         samples._replace(mag=mag),
