@@ -654,6 +654,18 @@ def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     with pytest.raises(ValueError, match="resume=True and overwrite=True: pass one"):  # used to resume silently
         jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=2, out=str(out), resume=True, overwrite=True)
     assert out.read_bytes() == kept
+    # resumed from other start gains: refused (the file recorded them as the start it never had)
+    const = tmp_path / "const.json"
+    jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, out=str(const), schedule="constant")
+    with pytest.raises(ValueError, match=r"resume: the start gains differ from the saved fit's \(kp: 1.0 vs 2.0\)"):
+        jaxatt.fit(
+            MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=2, out=str(const), schedule="constant", resume=True,
+            start={"kp": 2.0},
+        )  # fmt: skip
+    more = jaxatt.fit(
+        MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=2, out=str(const), schedule="constant", resume=True
+    )
+    assert len(more.history) == 2
 
 
 def _tiny_trial():

@@ -42,7 +42,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import engine, io
-from ..types import MAX_RUNS, Observer, check_seed
+from ..types import MAX_RUNS, Observer, check_seed, shown
 from . import flatparams, gainsfile
 from . import parametrize as P
 
@@ -802,6 +802,25 @@ def fit(
     return res
 
 
+def _check_same_start(saved, start_gains: dict) -> None:
+    """ValueError unless the gains a resumed fit starts from are those the saved fit started from (the file's
+    ``start``; files without it are not compared): another start would be recorded as this fit's."""
+    if not isinstance(saved, Mapping):
+        return
+    for name, entry in start_gains.items():
+        old = saved.get(name)
+        old = old.get("value") if isinstance(old, Mapping) else old
+        try:
+            same = old is None or np.allclose(np.asarray(old, float), np.asarray(entry["value"], float), rtol=1e-12)
+        except (TypeError, ValueError):
+            same = False
+        if not same:
+            raise ValueError(
+                f"resume: the start gains differ from the saved fit's ({name}: {shown(old)} vs "
+                f"{shown(entry['value'])}): resume with the start it had (start= / --init-gains), or start a new fit"
+            )
+
+
 def _start_on_view(start, rebuild):
     """``start`` (a function of your params) as a function of their flat view."""
 
@@ -1336,6 +1355,7 @@ def _run(
                     f"resume: the {which} trials hold other numbers than the saved fit's (same names: another file, "
                     "truth frame, columns or units?)"
                 )
+        _check_same_start(previous.get("start"), start_gains)
         resume_state = previous.get("resume")
         if not resume_state:
             raise ValueError(f"resume: {out_path} holds no resume state")
