@@ -421,11 +421,7 @@ def recording_defaults(entry, given, p, *, first_step: float, field_norm: float)
     A NaN / non-positive ``first_step`` or ``field_norm`` (no such reading) leaves that default alone."""
     if entry is None or not (given is None or isinstance(given, (dict, str))):
         return p
-    named = set(given) if isinstance(given, dict) else set()
-    if isinstance(given, str):  # the gains a file holds are the caller's
-        from .fitting import gainsfile
-
-        named = set(gainsfile.read(given).get("gains", {}))
+    named = _named_fields(given)
     new = {}
     if entry.first_step and entry.first_step not in named and np.isfinite(first_step) and first_step > 0:
         new[entry.first_step] = jnp.asarray(first_step, jnp.result_type(getattr(p, entry.first_step)))
@@ -452,10 +448,48 @@ def _median_finite(x) -> float:
 
 def recording_defaults_for_trials(entry, given, p, trials):
     """:func:`recording_defaults` for a batch of trials sharing one params: the median over the trials of their
-    first step (s) and of their first field readings' norms."""
+    first step (s) and of their first field readings' norms. Trials far from the median (a field in another unit,
+    another sampling rate) are warned about: the defaults fit them poorly, and their scores depend on the batch."""
     steps = [float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])) for tr in trials]
     norms = [_first_field_norm(tr.samples.mag) for tr in trials]
-    return recording_defaults(entry, given, p, first_step=_median_finite(steps), field_norm=_median_finite(norms))
+    step, norm = _median_finite(steps), _median_finite(norms)
+    if entry is not None and (given is None or isinstance(given, (dict, str))):
+        named = _named_fields(given)
+        cases = (
+            ("sizes of the trials' first magnetometer readings", norms, norm, entry.field_unit_gains, 3.0, 2.0,
+             "a magnetometer in another unit?"),
+            ("trials' first sampling steps (s)", steps, step, (entry.first_step,) if entry.first_step else (), 1.1,
+             1.1, "another sampling rate"),
+        )  # fmt: skip
+        for what, values, value, fields, most, far_from, why in cases:
+            if not [f for f in fields if f not in named] or _spread(values) <= most:
+                continue
+            far = [tr.name for tr, v in zip(trials, values) if _spread([v, value]) > far_from]
+            warnings.warn(
+                f"{entry.name}: the {what} differ widely ({', '.join(far[:3]) or 'some'}"
+                f"{', ...' if len(far) > 3 else ''} far from the median {value:.4g}; {why}): the defaults of "
+                f"{', '.join(fields)} follow the median for every trial, so those trials run with defaults that do "
+                "not fit them and their scores depend on the batch; score them apart, or give those params",
+                stacklevel=3,
+            )
+    return recording_defaults(entry, given, p, first_step=step, field_norm=norm)
+
+
+def _spread(values) -> float:
+    """max / min of the finite positive values (1 when fewer than two)."""
+    v = np.asarray([x for x in values if np.isfinite(x) and x > 0], float)
+    return float(v.max() / v.min()) if v.size > 1 else 1.0
+
+
+def _named_fields(given) -> set:
+    """The Params fields the caller's params name (a dict's keys, a gains file's gains; none for None)."""
+    if isinstance(given, dict):
+        return set(given)
+    if isinstance(given, str):  # the gains a file holds are the caller's
+        from .fitting import gainsfile
+
+        return set(gainsfile.read(given).get("gains", {}))
+    return set()
 
 
 def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorded: bool = True):

@@ -668,6 +668,29 @@ def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     assert len(more.history) == 2
 
 
+def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
+    """The data-dependent defaults of a batch (the MEKF's field covariances, VQF's first step) are the median over
+    its trials: a trial far from it (a magnetometer in nT beside ones in uT, another rate) is warned about, since
+    its score then depends on the batch; trials alike, or params the caller gives, are not."""
+    from jaxatt import api
+
+    ut = _tiny_trial()
+    nt = ut._replace(name="in_nT", samples=ut.samples._replace(mag=ut.samples.mag * 1e3))
+    slow = ut._replace(name="slow", samples=ut.samples._replace(t=ut.samples.t * 3))
+    for name, trials, match in (
+        ("mekf", [ut, nt, ut._replace(name="b")], r"mekf: the sizes of the trials' first magnetometer readings differ "
+         r"widely \(in_nT far from the median 44.72; a magnetometer in another unit\?\): the defaults of r_mag"),
+        ("vqf", [ut, slow], r"vqf: the trials' first sampling steps \(s\) differ widely .*the defaults of ts0"),
+    ):  # fmt: skip
+        entry = registry.get(name)
+        with pytest.warns(UserWarning, match=match):
+            api.recording_defaults_for_trials(entry, None, entry.params(), trials)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            api.recording_defaults_for_trials(entry, None, entry.params(), [ut, ut._replace(name="b")])
+            api.recording_defaults_for_trials(entry, entry.params(), entry.params(), trials)  # the caller's params
+
+
 def _tiny_trial():
     rng = np.random.default_rng(3)
     n = 40
