@@ -697,7 +697,8 @@ def _simulate(args) -> int:
             entry = registry.get(name)
             gains = gainsfile.read_params(args.gains, entry, base=entry.params(dtype=studies.base.paper_dtype()))
             observers = {name: (registry.recorded_observer(entry), gains)}
-            extra = {"gains_file": args.gains}
+            assert isinstance(study, studies.ahrs.AhrsStudy)
+            extra = {"gains_file": args.gains, "notes": study.notes(_study_config(study, args, kw), args.gains)}
     elif kind == "complementary":
         kw = _given(
             args,

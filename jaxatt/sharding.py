@@ -16,7 +16,9 @@ Devices (``devices`` argument of :func:`jaxatt.montecarlo.monte_carlo`, :func:`j
 * a sequence of ``jax.Device``.
 
 The batch of each call must be a multiple of the device count: :func:`jaxatt.montecarlo.monte_carlo` rounds
-its chunk up to one (padding runs are computed and dropped); a tuning minibatch that is not a multiple raises.
+its chunk up to one (padding runs are computed and dropped); :func:`jaxatt.fit` with ``devices=None`` runs on the
+most devices its minibatches split over (with a warning when that is fewer than all), and a minibatch that is not
+a multiple of an explicit device count raises.
 The results do not depend on the device count beyond rounding: run k's noise comes from its own key
 (``fold_in(PRNGKey(seed), k)``), never from its position in the batch.
 

@@ -860,6 +860,8 @@ def test_simulate_an_ahrs_filter_is_jaxatt_monte_carlo_on_the_same_imu(tmp_path)
     assert cli.main([*argv, *flags, "--gains", str(gains), "--json", str(out2)]) == 0
     d2 = json.loads(out2.read_text())
     assert d2["gains_file"] == str(gains)
+    assert d["notes"][0].startswith("mahony with its default gains, set up")  # mahony ships none
+    assert d2["notes"][0].startswith(f"mahony with the gains of {gains}, set up")  # it said "its shipped gains"
     ref2 = jaxatt.monte_carlo("mahony", str(gains), runs=5, duration=3.0, dt=0.02, scenario=scn)
     np.testing.assert_allclose(
         d2["metrics"]["mean_angle_error_deg"]["per_run"], ref2.per_run["mean_angle_error_deg"], rtol=1e-12, atol=0

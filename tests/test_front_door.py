@@ -596,7 +596,8 @@ def _mine(g, a, m, *, step, output=None):
 
 def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
     """16 runs on 3 devices used to stop ``jaxatt tune`` with its default flags; now the fit takes the most
-    devices every batch splits over (2), all of them when they do (None), one when nothing else does."""
+    devices every batch splits over (2), all of them when they do (None), one when nothing else does, and says
+    when it uses fewer than all."""
     from jaxatt.fitting import fitter
 
     monkeypatch.setattr(jax, "local_device_count", lambda: 3)
@@ -604,6 +605,12 @@ def test_a_study_fit_uses_the_devices_its_batches_split_over(monkeypatch):
     assert fitter.devices_for_batches([16, 16]) == 2
     assert fitter.devices_for_batches([15, 6]) is None
     assert fitter.devices_for_batches([16, 3]) == 1
+    # fewer devices than there are is said (the docs promised an error; the fit quietly ran on fewer)
+    monkeypatch.setattr(jax, "local_device_count", lambda: 2)
+    with pytest.warns(
+        UserWarning, match=r"fit: 3 runs per batch split evenly over 1 of the 2 devices, so the fit runs"
+    ):
+        jaxatt.fit(None, None, "complementary", steps=0, train_runs=3, val_runs=0, config={"duration": 2.0})
 
 
 def test_fit_takes_your_params_as_a_dict_a_dataclass_or_nested_and_returns_them_in_their_shape(tmp_path):

@@ -1197,7 +1197,15 @@ def _fit_study(
             optimizer=optimizer,
         )
     if devices is None:  # every device that the batches split over evenly (3 devices, 16 runs: 2 devices)
-        devices = devices_for_batches([int(min(batch or train_runs, train_runs))] + ([val_runs] if val_runs else []))
+        sizes = [int(min(batch or train_runs, train_runs))] + ([val_runs] if val_runs else [])
+        devices = devices_for_batches(sizes)
+        if devices is not None and devices < jax.local_device_count():
+            warnings.warn(
+                f"fit: {' and '.join(map(str, sizes))} runs per batch split evenly over {devices} of the "
+                f"{jax.local_device_count()} devices, so the fit runs on {devices} (batch and val_runs that are "
+                f"multiples of {jax.local_device_count()} use them all)",
+                stacklevel=3,
+            )
     objective_fn = simulated_objective(
         s, bound, spec, dtype=dtype, checkpoint=checkpoint, step_remat=step_remat, devices=devices
     )

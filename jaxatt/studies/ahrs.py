@@ -100,7 +100,7 @@ def scenario(cfg: Config):
 
 
 class AhrsStudy(base.Study):
-    """A registered AHRS filter, with its shipped gains, on a simulated IMU (no published numbers)."""
+    """A registered AHRS filter, with its shipped or default gains, on a simulated IMU (no published numbers)."""
 
     name = NAME
     paper = "no paper: the rotation rates of the sensors2020 NLIO paper, Section 5, on a simulated ENU IMU"
@@ -128,10 +128,16 @@ class AhrsStudy(base.Study):
 
         return registry.get(cfg.observer).hold
 
-    def notes(self, cfg):
+    def notes(self, cfg, gains_file=None):
+        """The set-up in words; ``gains_file``: the gains file the filter runs with (``jaxatt simulate --gains``)."""
+        shipped = registry.get(cfg.observer).shipped
+        gains = (
+            f"the gains of {gains_file}"
+            if gains_file
+            else (f"its shipped gains ({shipped})" if shipped else "its default gains")
+        )
         return [
-            f"{cfg.observer} with its shipped gains, set up from the first sample as on a recording; ENU, true "
-            "start = identity",
+            f"{cfg.observer} with {gains}, set up from the first sample as on a recording; ENU, true start = identity",
             f"noise per sample: gyro {cfg.gyro_noise_std * cfg.noise_scale:g} rad/s, accelerometer "
             f"{cfg.acc_noise_std * cfg.noise_scale:g} m/s^2, magnetometer {cfg.mag_noise_std * cfg.noise_scale:g} uT; "
             f"gyro bias {tuple(cfg.gyro_bias)} rad/s; rates x{cfg.rate_scale:g}",
