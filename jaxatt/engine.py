@@ -308,10 +308,7 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
             f"observer {name!r}: step must return a state with the structure init returns; init gave "
             f"{ta}, step gave {tb}"
         ),
-        lambda key, a, b: (
-            f"observer {name!r}: the state field {key or '(state)'} is {a} after init but {b} after "
-            "step (they must match)"
-        ),
+        lambda key, a, b: _state_dtype_message(name, key, a, b, jnp.dtype(obs_dtype).name),
     )
     outputs = [("step", out)] + ([("output", out0)] if observer.output is not None else [])
     for where, o in outputs:
@@ -374,6 +371,18 @@ def _check_same_layout(a, b, structure_message: Callable, field_message: Callabl
             raise ValueError(
                 field_message(jax.tree_util.keystr(path), f"{x.dtype}{list(x.shape)}", f"{y.dtype}{list(y.shape)}")
             )
+
+
+def _state_dtype_message(name: str, key: str, a: str, b: str, obs_dtype: str) -> str:
+    """The message for a state field that init and step give differently (``a``, ``b``: "dtype[shape]")."""
+    field = key or "(state)"
+    if a.split("[")[0] == obs_dtype and b.split("[")[0] != obs_dtype and a[a.index("[") :] == b[b.index("[") :]:
+        return (
+            f"observer {name!r}: step returns the state field {field} as {b}, but the observer runs in {obs_dtype} "
+            f"(the input's precision; init's state is cast to it): compute step in the state's dtype, or run in "
+            f"{b.split('[')[0]} (dtype='{b.split('[')[0]}')"
+        )
+    return f"observer {name!r}: the state field {field} is {a} after init but {b} after step (they must match)"
 
 
 def _structure(tree) -> str:

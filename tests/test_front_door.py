@@ -486,6 +486,12 @@ def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_l
             lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st._replace(bias=jnp.zeros(5)), st)),
             r"state field \.bias is float\d\d\[3\] after init but float\d\d\[5\] after step",
         ),
+        (  # a step written in float32 on float64 data: said as that, not as init's fault
+            lambda g, a, m: _mine(
+                g, a, m, step=lambda p, st, s, dt: (st._replace(bias=st.bias.astype(jnp.float32)), st)
+            ),
+            r"step returns the state field \.bias as float32\[3\], but the observer runs in float64 .*dtype='float32'",
+        ),
         (
             lambda g, a, m: _mine(g, a, m, step=lambda p, st, s, dt: (st, st.q)),
             r"step must return its output as a NamedTuple or dict .*got an array",
