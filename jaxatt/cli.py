@@ -78,6 +78,16 @@ def _number(s: str, *, low: float, strict: bool, what: str) -> float:
     return v
 
 
+def _simulated_observer(s: str) -> str:
+    """simulate's --observer: a registered name (argparse checks the choices); module:attr is said to be Python's."""
+    if ":" in s:
+        raise argparse.ArgumentTypeError(
+            f"{s}: jaxatt simulate runs the registered observers; your own observer runs on the same simulated IMU "
+            "from Python: jaxatt.monte_carlo(observer, params, runs=..., duration=...)"
+        )
+    return s
+
+
 def _positive(s: str) -> float:
     return _number(s, low=0.0, strict=True, what="positive")
 
@@ -337,10 +347,11 @@ def _parser() -> _Parser:
     sp = sub.add_parser("simulate", help="run an observer on a scenario you define with flags")
     sp.add_argument(
         "--observer",
+        type=_simulated_observer,
         choices=SIMULATE_OBSERVERS,
         required=True,
         help="a paper's observer on its scenario, or an AHRS filter (madgwick, mahony, vqf, robust, ...) with its "
-        "shipped gains on a simulated IMU (ENU; jaxatt.monte_carlo in Python)",
+        "shipped or default gains on a simulated IMU (ENU; jaxatt.monte_carlo in Python, for your own observer too)",
     )
     g = sp.add_argument_group("batista-ges / batista-so3 (Section IV / 4 platform)")
     g.add_argument("--trajectory", choices=["slow", "aggressive"], default=None)
@@ -471,7 +482,12 @@ def _parser() -> _Parser:
 
     bt = sub.add_parser("broad-tune", help="learn an observer's gains on BROAD trials (or your own logs)")
     _trial_source_flags(bt)
-    bt.add_argument("--observer", default="robust", help="a registered observer to tune (default robust)")
+    bt.add_argument(
+        "--observer",
+        default="robust",
+        help="a registered observer to tune (default robust), or module:attr of your own Observer (with --params)",
+    )
+    bt.add_argument("--params", default=None, help="module:attr of the start params of your own observer")
     bt.add_argument("--trials", nargs="*", default=None, help="training trials (default: all)")
     bt.add_argument("--steps", type=_count(0, MAX_FIT_STEPS), default=150, help="Adam steps (default 150)")
     bt.add_argument("--lr", type=_positive, default=0.05, help="Adam learning rate on log-gains")
@@ -1069,14 +1085,15 @@ def _broad_tune(args) -> int:
         inputs={"--init-gains": args.init_gains, **_trial_inputs(args)},
     )
     _existing_gains_out(args)
+    observer, params = _observer_to_tune(args)
     trials = _trials_of(args)
     from .progress import Heartbeat
 
     with Heartbeat(f"jaxatt broad-tune {args.observer}", bool(_progress(args))), warnings.catch_warnings():
         warnings.simplefilter("ignore", fitter.NonFiniteFit)  # said as an error line, exit 1 (_fit_status)
         res = fitter.fit(
-            args.observer,
-            None,
+            observer,
+            params,
             trials,
             steps=args.steps,
             lr=args.lr,
@@ -1179,6 +1196,29 @@ _SI_UNITS = {"gyr_unit": "rad/s", "acc_unit": "m/s^2", "time_unit": "s"}
 
 #: what ``jaxatt filter --out`` writes, by extension ("" = no extension: CSV)
 FILTER_OUTPUTS = (".csv", ".txt", ".npz", "")
+
+
+def _observer_to_tune(args):
+    """(observer, start params) of broad-tune's ``--observer`` (a registered name; or module:attr of your own
+    Observer, with ``--params`` module:attr, or of a registry Entry) and ``--params``."""
+    from .observers import registry
+
+    if ":" not in args.observer:
+        if args.params:
+            raise UserError(
+                "--params applies to your own observer (module:attr); a registered one starts from its gains"
+            )
+        return args.observer, None
+    observer = _import_attr(args.observer, "--observer")
+    if isinstance(observer, registry.Entry):
+        if args.params:
+            raise UserError(
+                f"--observer {args.observer} is a registry Entry: it starts from its own params (no --params)"
+            )
+        return observer, None
+    if not args.params:
+        raise UserError(f"--observer {args.observer} (your own observer) needs --params module:attr (its start gains)")
+    return observer, _import_attr(args.params, "--params")
 
 
 def _observer_and_params(args):

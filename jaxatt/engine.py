@@ -379,8 +379,8 @@ def _state_dtype_message(name: str, key: str, a: str, b: str, obs_dtype: str) ->
     if a.split("[")[0] == obs_dtype and b.split("[")[0] != obs_dtype and a[a.index("[") :] == b[b.index("[") :]:
         return (
             f"observer {name!r}: step returns the state field {field} as {b}, but the observer runs in {obs_dtype} "
-            f"(the input's precision; init's state is cast to it): compute step in the state's dtype, or run in "
-            f"{b.split('[')[0]} (dtype='{b.split('[')[0]}')"
+            f"(init's state is cast to it): compute step in the state's dtype, or run in {b.split('[')[0]} "
+            f"(dtype='{b.split('[')[0]}')"
         )
     return f"observer {name!r}: the state field {field} is {a} after init but {b} after step (they must match)"
 

@@ -335,6 +335,11 @@ BAD_INPUT = [
     ),
     # a study's gains file with a value its theorem refuses: named by the file, the array on the same line
     (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/so3_negative.json"], r"so3_negative.*alpha1.*-1"),
+    # your own observer on the simulated IMU is Python's jaxatt.monte_carlo (it was "invalid choice")
+    (
+        ["simulate", "--observer", "my_filters:OBSERVER", "--runs", "2"],
+        r"--observer: my_filters:OBSERVER: .*monte_carlo",
+    ),
     # an unknown flag is said by the command, pointing to its own help
     (
         ["broad", "--data-dir", "{d}/trials_ok", "--nonsense"],

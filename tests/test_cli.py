@@ -582,6 +582,19 @@ def test_broad_and_broad_tune_on_small_trials(tmp_path, capsys, monkeypatch):
         assert mine["trials"][name]["total_rmse_deg"] == pytest.approx(t.total_rmse_deg, rel=1e-12)
     assert cli.main(args[:-2]) == 2  # no --params
     assert "params are required for your own observer" in capsys.readouterr().err
+    # broad-tune learns your own observer's gains too (it said "unknown observer"): those of jaxatt.fit, which
+    # jaxatt broad reads back with --gains
+    own_gains = tmp_path / "own_gains.json"
+    tune_own = ["broad-tune", *args[1:], "--steps", "2", "--out", str(own_gains), "--quiet"]
+    assert cli.main(tune_own) == 2  # its step computes in float64 (jnp.zeros(1)): said, with the fix
+    assert "step returns the state field .q as float64[4], but the observer runs in float32" in capsys.readouterr().err
+    assert cli.main([*tune_own, "--float64"]) == 0
+    fit = jaxatt.fit(my_filter.OBSERVER, my_filter.PARAMS, trials, steps=2)
+    assert json.loads(own_gains.read_text())["gains"]["k"]["value"] == pytest.approx(float(fit.params.k), rel=1e-12)
+    assert cli.main([*args, "--gains", str(own_gains), "--json", str(own)]) == 0
+    assert json.loads(own.read_text())["gains"]["k"] == pytest.approx(float(fit.params.k), rel=1e-12)
+    assert cli.main(["broad-tune", *args[1:-2], "--steps", "1", "--out", str(tmp_path / "x.json")]) == 2
+    assert "(your own observer) needs --params module:attr" in capsys.readouterr().err
     g = tmp_path / "g.json"
     assert (
         cli.main(
