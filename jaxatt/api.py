@@ -851,7 +851,7 @@ def filter(
         k = int(np.argmax(bad))
         raise FloatingPointError(
             f"{name}: the estimate is first non-finite (or a zero quaternion) at sample {k} (t = {ts[k]:.6g} s), "
-            f"{int(bad.sum())} of {len(bad)} estimates; check the inputs and gains"
+            f"{int(bad.sum())} of {len(bad)} estimates{_pass_at_fault(extra, ts)}; check the inputs and gains"
         )
     from .data.logs import non_unit_row
 
@@ -1039,9 +1039,10 @@ def broad_score(
         if not np.any(B.scored_samples(tr)):  # documented: no ground truth to score against -> NaN, not in the means
             m = {k: float("nan") for k in m}
         elif not all(np.isfinite(v) for v in m.values()):
+            where = _where_nonfinite(obs, p_run, tr, hold, dt_, spec)
             raise FloatingPointError(
-                f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); the estimate "
-                "diverged (check the gains)"
+                f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); "
+                + (where or "the estimate diverged (check the gains)")
             )
         per[tr.name] = TrialScore(
             m["total_rmse_deg"], m["heading_rmse_deg"], m["inclination_rmse_deg"], tr.group or B.group_of(tr.name)
@@ -1053,6 +1054,40 @@ def broad_score(
             stacklevel=2,
         )
     return BroadScore(per, group_means(per), name, wall)
+
+
+def _pass_at_fault(passes: dict, ts) -> str:
+    """For a non-finite smoothed estimate: which pass went first, and where (the backward pass runs from the
+    recording's end: its first non-finite estimate is the last bad row in forward time)."""
+    if "q_forward" not in passes:
+        return ""
+    with np.errstate(invalid="ignore"):
+        fwd, bwd = (~(np.linalg.norm(passes[k], axis=-1) > 1e-6) for k in ("q_forward", "q_backward"))
+    if fwd.any():
+        k = int(np.argmax(fwd))
+        return f" (the forward pass from sample {k}, t = {ts[k]:.6g} s)"
+    if bwd.any():
+        k = len(bwd) - 1 - int(np.argmax(bwd[::-1]))
+        return (
+            f" (the backward pass, run from the recording's end, from sample {k}, t = {ts[k]:.6g} s; the forward "
+            "pass is finite)"
+        )
+    return ""
+
+
+def _where_nonfinite(obs, params, trial, hold: str, dtype, offline) -> str:
+    """Where :func:`filter` finds the first non-finite estimate of ``trial`` ("the estimate is first non-finite ...
+    at sample k (t = ... s) ..."), or "" (only run once a score was not finite: it compiles the one-recording
+    program)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # said already, by the batch
+            filter(obs, trial.samples, params=params, hold=hold, dtype=dtype, offline=offline or False)
+    except FloatingPointError as e:
+        return str(e).split(": ", 1)[-1]
+    except Exception:  # noqa: BLE001 - a second opinion only: the score's own message stands without it
+        return ""
+    return ""
 
 
 # ------------------------------------------------------------------------------------------------------------

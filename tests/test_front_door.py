@@ -681,6 +681,24 @@ def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     assert len(more.history) == 2
 
 
+def test_a_non_finite_score_or_smoothed_estimate_says_where_it_first_appeared():
+    """Your observer goes NaN after 0.2 s: broad_score names the sample and time (it said only "diverged (check
+    the gains)"), and the offline mode says which pass went first (it named sample 0, the fused estimate's)."""
+
+    def nan_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        q = jnp.where(new.t > 0.2, jnp.nan, new.q)
+        return new._replace(q=q), out._replace(q=q)
+
+    broken = Observer(my_init, nan_step, "nan_after_0.2s")
+    trial = _tiny_trial()
+    with pytest.raises(FloatingPointError, match=r"trial 00_tiny is not finite .*first non-finite .* at sample 2\d "
+                       r"\(t = 0.2\d* s\)"):  # fmt: skip
+        jaxatt.broad_score(broken, MY_PARAMS, [trial])
+    with pytest.raises(FloatingPointError, match=r"at sample 0 .*\(the forward pass from sample 2\d, t = 0.2"):
+        jaxatt.filter(broken, trial.samples, params=MY_PARAMS, offline=True)
+
+
 def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
     """The data-dependent defaults of a batch (the MEKF's field covariances, VQF's first step) are the median over
     its trials: a trial far from it (a magnetometer in nT beside ones in uT, another rate) is warned about, since
