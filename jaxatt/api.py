@@ -32,7 +32,7 @@ import numpy as np
 
 from . import engine, frames
 from .observers import registry
-from .types import ImuSample, Observer, check_window_start
+from .types import ImuSample, Observer, check_seed, check_window_start
 
 __all__ = [
     "filter",
@@ -259,7 +259,7 @@ def _warn_implausible(
 
 
 def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> List[str]:
-    dt_hint = "dt= / --dt" if cli == "jaxatt filter" else "dt="
+    on_filter = api == "jaxatt.filter"  # filter's dt replaces a log's timestamps; load_trial's times a log without
     with np.errstate(invalid="ignore", over="ignore"):  # |acc| of huge readings: inf, said later
         notes = []
         if not np.isfinite(gyr).any():
@@ -293,14 +293,14 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
             if from_dt:  # the user's own sample period, not timestamps
                 notes.append(
-                    f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s (time_unit='{unit}' in "
-                    f"{api} converts it)"
+                    f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s "
+                    + (f"(time_unit='{unit}' in {api} converts it)" if on_filter else "(give dt in seconds)")
                 )
             else:
                 notes.append(
                     f"the median sample interval is {step:.4g} s: are the timestamps in {unit}? jaxatt expects s "
-                    f"(time_unit='{unit}' in {api}, --time-unit {unit} in {cli}, converts them; or "
-                    f"give the sample period: {dt_hint})"
+                    f"(time_unit='{unit}' in {api}, --time-unit {unit} in {cli}, converts them"
+                    + ("; or give the sample period: dt= / --dt)" if on_filter else ")")
                 )
         gaps = d > 10.0 * step
         if gaps.any():
@@ -446,20 +446,21 @@ def _median_finite(x) -> float:
     return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
 
 
-def recording_defaults_for_trials(entry, given, p, trials):
+def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
     """:func:`recording_defaults` for a batch of trials sharing one params: the median over the trials of their
     first step (s) and of their first field readings' norms. Trials far from the median (a field in another unit,
-    another sampling rate) are warned about: the defaults fit them poorly, and their scores depend on the batch."""
+    another sampling rate, compared by their median steps) are warned about unless ``warn`` is False (a fit whose
+    start gains may set those fields): the defaults fit them poorly, and their scores depend on the batch."""
     steps = [float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])) for tr in trials]
     norms = [_first_field_norm(tr.samples.mag) for tr in trials]
     step, norm = _median_finite(steps), _median_finite(norms)
-    if entry is not None and (given is None or isinstance(given, (dict, str))):
+    if warn and entry is not None and (given is None or isinstance(given, (dict, str))):
         named = _named_fields(given)
         cases = (
             ("sizes of the trials' first magnetometer readings", norms, norm, entry.field_unit_gains, 3.0, 2.0,
              "a magnetometer in another unit?"),
-            ("trials' first sampling steps (s)", steps, step, (entry.first_step,) if entry.first_step else (), 1.1,
-             1.1, "another sampling rate"),
+            ("trials' sampling steps (s)", [float(np.median(np.diff(np.asarray(tr.samples.t)))) for tr in trials], step,
+             (entry.first_step,) if entry.first_step else (), 1.1, 1.1, "another sampling rate"),
         )  # fmt: skip
         for what, values, value, fields, most, far_from, why in cases:
             if not [f for f in fields if f not in named] or _spread(values) <= most:
@@ -1219,10 +1220,22 @@ def monte_carlo(
         from . import io
 
         out = io.check_output_path(out, "out", suffixes=(".npz",))
-        spec = _runs_spec(name, p, scn, duration, dt, seed, ws, hold, dt_, trace_every)
+        spec = _runs_spec(
+            name,
+            p,
+            scn,
+            duration,
+            mc.check_dt(dt),
+            check_seed(seed),
+            ws,
+            hold,
+            dt_,
+            mc.check_count("trace_every", trace_every),
+        )
         if resume:
             previous = _saved_runs(out, spec, name, runs)
-        elif out.exists() and not io.is_special(out) and not overwrite:
+        # several processes: process 0 writes the file, and the others must not find its first chunk and stop
+        elif io.is_main_process() and out.exists() and not io.is_special(out) and not overwrite:
             raise ValueError(
                 f"out {out}: exists; pass resume=True to continue its runs or overwrite=True to replace them"
             )
@@ -1268,10 +1281,15 @@ def monte_carlo(
 def _runs_spec(name, params, scenario, duration, dt, seed, window_start, hold, dtype, trace_every) -> str:
     """What must match for the runs saved by :func:`monte_carlo` (``out``) to be continued (runs aside)."""
     import json
+    import re
 
     def tree(x):
         leaves, treedef = jax.tree_util.tree_flatten(x)
-        return {"tree": str(treedef), "leaves": [np.asarray(v).tolist() for v in leaves]}
+        # an object's repr in the structure holds its address, another in every process: not part of the call
+        return {
+            "tree": re.sub(r" at 0x[0-9a-fA-F]+", "", str(treedef)),
+            "leaves": [np.asarray(v).tolist() for v in leaves],
+        }
 
     spec = {
         "observer": name,
@@ -1290,8 +1308,11 @@ def _runs_spec(name, params, scenario, duration, dt, seed, window_start, hold, d
 
 def _saved_runs(out, spec: str, name: str, runs: int):
     """The runs saved in ``out`` by an earlier call with the same ``spec`` (None when there is no file)."""
+    from . import io
     from . import montecarlo as mc
 
+    if io.is_special(out):  # /dev/null: nothing was kept
+        return None
     saved_spec, saved = mc.load_runs(out, "resume", again="pass overwrite=True instead of resume to replace it")
     if not saved:
         return None

@@ -1509,9 +1509,12 @@ def _join_negative_lists(argv: List[str]) -> List[str]:
 
 def main(argv: Optional[List[str]] = None) -> int:
     parser = _parser()
-    args, unknown = parser.parse_known_args(_join_negative_lists(list(sys.argv[1:] if argv is None else argv)))
-    if unknown:  # said by the command's parser, so the message points to its --help
-        parser.subparsers[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
+    words = _join_negative_lists(list(sys.argv[1:] if argv is None else argv))
+    args, unknown = parser.parse_known_args(words)
+    if unknown:  # said by the parser of the part they are in, so the message points to its --help
+        before = words.index(args.command) if args.command in words else len(words)
+        first = any(words.index(u) < before for u in unknown if u in words)
+        (parser if first else parser.subparsers[args.command]).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         _IMPORTING.append(True)
         import jax
@@ -1559,7 +1562,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 def _one_line(error: BaseException) -> str:
     """An error's message on one line (a message that shows an array may hold line breaks)."""
-    return " ".join(str(error).split())
+    return re.sub(r"\s*\n\s*", " ", str(error)).strip()
 
 
 def compile_cache_dir(environ=os.environ) -> Optional[str]:

@@ -282,10 +282,14 @@ def euler_error_deg(r_true, r_est) -> np.ndarray:
 def euler_trace(truth, out, errors, angle_deg) -> Dict[str, object]:
     """A ``trace_fn`` for :func:`jaxatt.montecarlo.simulate` / ``monte_carlo``: time (s), rotation-angle error
     (deg) and the ZYX Euler-angle errors ``euler_error_deg`` (3,) (roll, pitch, yaw; estimate minus truth,
-    wrapped). Works for any observer whose ``Out`` has ``r`` and any scenario whose truth has ``t`` and ``r``."""
+    wrapped). Works for any observer (its estimate read as everywhere: :func:`jaxatt.engine.estimate_r`) and any
+    scenario whose truth has ``t`` and ``r``."""
     import jax.numpy as jnp
 
-    d = _euler_error_rad(truth.r.astype(out.r.dtype), out.r)
+    from . import engine
+
+    r = engine.estimate_r(out)
+    d = _euler_error_rad(truth.r.astype(r.dtype), r)
     return {"t": truth.t, "angle_error_deg": angle_deg, "euler_error_deg": jnp.rad2deg(d)}
 
 

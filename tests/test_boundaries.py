@@ -340,6 +340,7 @@ BAD_INPUT = [
         ["simulate", "--observer", "my_filters:OBSERVER", "--runs", "2"],
         r"--observer: my_filters:OBSERVER: .*monte_carlo",
     ),
+    (["--nonsense", "broad", "--data-dir", "{d}/trials_ok"], r"^jaxatt: error: .* --nonsense \(see jaxatt --help\)"),
     # an unknown flag is said by the command, pointing to its own help
     (
         ["broad", "--data-dir", "{d}/trials_ok", "--nonsense"],

@@ -202,6 +202,8 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
         trial = logs.load_trial(path, frame="NED", group="mine", **kw)
     with pytest.warns(UserWarning, match=r"the ground truth's vertical is 1[78]\d deg from the accelerometer's"):
         logs.load_trial(path, **kw)  # the NED truth read as ENU
+    with pytest.warns(UserWarning, match=r"phone.csv: dt is not used: the log has timestamps"):
+        logs.load_trial(path, frame="NED", dt=0.02, **kw)
     forgot = {k: v for k, v in kw.items() if k != "acc_unit"}  # the units check of jaxatt.filter, on the trial path
     with pytest.warns(
         UserWarning, match=r"log .*phone.csv: the median \|acc\| is 1: is it in g\? .*acc_unit='g' in load"
@@ -656,6 +658,28 @@ def test_fit_takes_your_params_as_a_dict_a_dataclass_or_nested_and_returns_them_
         back = named(gainsfile.apply(params, saved))
         np.testing.assert_allclose([back.kp, back.ki], [got.kp, got.ki], rtol=1e-12, err_msg=shape)
     assert set(json.loads((tmp_path / "nested.json").read_text())["gains"]) == {"acc_kp", "bias_0"}
+    # a gain name says which leaf it is: two leaves that read as one name are refused, not renamed
+    from jaxatt.fitting import flatparams
+
+    with pytest.raises(ValueError, match=r"the leaves \['a'\]\['b'\] and \['a_b'\] both read as the gain name 'a_b'"):
+        flatparams.leaf_names({"a_b": 1.0, "a": {"b": 2.0}})
+    assert flatparams.leaf_names({"x²": 1.0})[0] == ["x_"]  # a name that is an identifier
+
+    @jax.tree_util.register_pytree_node_class
+    class Gain:  # a registered class of one leaf, as a field: tuned, not silently fixed
+        def __init__(self, k):
+            self.k = k
+
+        def tree_flatten(self):
+            return (self.k,), None
+
+        @classmethod
+        def tree_unflatten(cls, aux, children):
+            return cls(*children)
+
+    assert flatparams.needs_flat_view(MyParams(Gain(MY_PARAMS.kp), MY_PARAMS.ki))
+    with pytest.raises(ValueError, match=r"start\(params\) must return params of the structure it was given"):
+        jaxatt.fit(obs, params, trials, steps=1, start=lambda p: {"kp": 1.0})
 
 
 def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
@@ -667,7 +691,10 @@ def test_resume_without_out_and_resume_with_overwrite_are_refused(tmp_path):
     with pytest.raises(ValueError, match="resume=True and overwrite=True: pass one"):  # used to resume silently
         jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=2, out=str(out), resume=True, overwrite=True)
     assert out.read_bytes() == kept
-    # resumed from other start gains: refused (the file recorded them as the start it never had)
+    # resumed from other start gains: refused (the file recorded them as the start it never had), down to the
+    # 1e-9 gains of batista-so3 (an absolute tolerance let them all pass)
+    with pytest.raises(ValueError, match="the start gains differ"):
+        fitter._check_same_start({"alpha0": {"value": 1e-9}}, {"alpha0": {"value": 5e-9}})
     const = tmp_path / "const.json"
     jaxatt.fit(MY_OBSERVER, MY_PARAMS, [_tiny_trial()], steps=1, out=str(const), schedule="constant")
     with pytest.raises(ValueError, match=r"resume: the start gains differ from the saved fit's \(kp: 1.0 vs 2.0\)"):
@@ -711,7 +738,7 @@ def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
     for name, trials, match in (
         ("mekf", [ut, nt, ut._replace(name="b")], r"mekf: the sizes of the trials' first magnetometer readings differ "
          r"widely \(in_nT far from the median 44.72; a magnetometer in another unit\?\): the defaults of r_mag"),
-        ("vqf", [ut, slow], r"vqf: the trials' first sampling steps \(s\) differ widely .*the defaults of ts0"),
+        ("vqf", [ut, slow], r"vqf: the trials' sampling steps \(s\) differ widely .*the defaults of ts0"),
     ):  # fmt: skip
         entry = registry.get(name)
         with pytest.warns(UserWarning, match=match):
@@ -1098,6 +1125,9 @@ def test_a_monte_carlo_saved_to_a_file_is_resumed_from_it(tmp_path):
         jaxatt.monte_carlo("mahony", runs=2, **kw, out=tmp_path / "junk.npz", resume=True)
     replaced = jaxatt.monte_carlo("mahony", runs=2, **kw, out=out, overwrite=True)
     assert list(montecarlo.load_result(out).run_indices) == [0, 1] and replaced.complete
+    assert jaxatt.monte_carlo("mahony", runs=2, **kw, out="/dev/null", resume=True).complete  # nothing kept there
+    with pytest.raises(ValueError, match="seed must be"):  # checked before the file's spec is made of it
+        jaxatt.monte_carlo("mahony", runs=2, **{**kw, "seed": None}, out=tmp_path / "s.npz")
 
 
 def test_float64_gains_of_a_monte_carlo_without_x64_are_warned_about():

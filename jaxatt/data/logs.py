@@ -724,12 +724,16 @@ def load_trial(
     _warn_truth_frame(q, samples.acc, f"log {path}")
     from .. import api  # the front door's units check, as jaxatt.filter makes it (imported when it runs: no cycle)
 
+    t = np.asarray(samples.t, float)
+    from_dt = dt is not None and bool(np.allclose(t - t[0], np.arange(n) * float(dt), rtol=1e-9, atol=0.0))
+    if dt is not None and not from_dt:  # load_log read the log's own timestamps
+        warnings.warn(f"log {path}: dt is not used: the log has timestamps (t, in time_unit)", stacklevel=2)
     api._warn_implausible(
         np.asarray(samples.gyr, float),
         np.asarray(samples.acc, float),
         None if samples.mag is None else np.asarray(samples.mag, float),
-        np.asarray(samples.t, float),
-        from_dt=dt is not None,
+        t,
+        from_dt=from_dt,
         where=f"log {path}: ",
         api="load_trial",
         cli="jaxatt broad / broad-tune",

@@ -22,10 +22,13 @@ __all__ = ["needs_flat_view", "flat_view", "leaf_names", "observer_on_view"]
 
 
 def _is_container(v) -> bool:
+    """Whether a field holds a pytree node (a tuple, a dict, a dataclass, a registered class) rather than one leaf."""
+    if v is None:
+        return False
     return (
         isinstance(v, (tuple, list, dict))
         or dataclasses.is_dataclass(v)
-        or (v is not None and len(jax.tree_util.tree_leaves(v)) != 1)
+        or not jax.tree_util.treedef_is_leaf(jax.tree_util.tree_structure(v))
     )
 
 
@@ -51,17 +54,21 @@ def _part(key) -> str:
 
 def leaf_names(params) -> Tuple[list, Any]:
     """(names, treedef): one identifier per leaf of ``params`` from its path (parts joined by ``_``; characters
-    that cannot be in a name become ``_``; a name taken twice gets ``_2``, ``_3``, ...)."""
+    that cannot be in a name become ``_``). ValueError when two leaves read as one name (``{"a_b": ..}`` beside
+    ``{"a": {"b": ..}}``): a gain name must say which leaf it is."""
     paths, treedef = jax.tree_util.tree_flatten_with_path(params)
-    names, seen = [], set()
+    names: list = []
+    where: dict = {}
     for path, _ in paths:
-        name = re.sub(r"\W", "_", "_".join(_part(k) for k in path)) or "value"
+        name = re.sub(r"[^0-9A-Za-z_]", "_", "_".join(_part(k) for k in path)) or "value"
         if name[0].isdigit() or name[0] == "_" or keyword.iskeyword(name):  # not a NamedTuple field name
             name = "g_" + name
-        base, n = name, 2
-        while name in seen:
-            name, n = f"{base}_{n}", n + 1
-        seen.add(name)
+        shown = jax.tree_util.keystr(path) or "(params)"
+        if name in where:
+            raise ValueError(
+                f"params: the leaves {where[name]} and {shown} both read as the gain name {name!r}: rename one"
+            )
+        where[name] = shown
         names.append(name)
     return names, treedef
 
