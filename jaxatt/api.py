@@ -1111,16 +1111,31 @@ def ahrs_scenario(
     field's horizontal direction, as in every recorded-data set-up (TRIAD)."""
     from .sim import ahrs
 
-    return ahrs.AhrsScenario.make(
-        rates=ahrs.nlio_rates(rate_scale),
-        acc_ref_nav=(0.0, 0.0, 9.81),
-        mag_ref_nav=mag_ref_enu,
-        gyro_bias=gyro_bias,
-        gyro_noise_std=gyro_noise_std,
-        acc_noise_std=acc_noise_std,
-        mag_noise_std=mag_noise_std,
-        mix_prob=mix_prob,
-    )
+    given = dict(gyro_noise_std=gyro_noise_std, acc_noise_std=acc_noise_std, mag_noise_std=mag_noise_std)
+    given.update(mix_prob=mix_prob, rate_scale=rate_scale)
+    for name, v in given.items():  # numbers (a string or a complex one failed deep inside numpy)
+        if isinstance(v, (str, bytes, bool, complex, np.complexfloating)) or not isinstance(v, (int, float, np.number)):
+            raise ValueError(f"{name} must be a real number, got {v!r}")
+    for name, v in (("gyro_bias", gyro_bias), ("mag_ref_enu", mag_ref_enu)):
+        if v is None or np.asarray(v).dtype.kind not in "iuf":
+            raise ValueError(f"{name} must be 3 real numbers, got {v!r}")
+    try:
+        return ahrs.AhrsScenario.make(
+            rates=ahrs.nlio_rates(rate_scale),
+            acc_ref_nav=(0.0, 0.0, 9.81),
+            mag_ref_nav=mag_ref_enu,
+            gyro_bias=gyro_bias,
+            gyro_noise_std=gyro_noise_std,
+            acc_noise_std=acc_noise_std,
+            mag_noise_std=mag_noise_std,
+            mix_prob=mix_prob,
+        )
+    except ValueError as e:  # the scenario's check names its own fields: say the arguments given here
+        msg = str(e).replace(
+            "acc_ref_nav and mag_ref_nav must be non-zero and not parallel",
+            "mag_ref_enu must be non-zero and not vertical (parallel to gravity)",
+        )
+        raise ValueError(msg.replace("mag_ref_nav", "mag_ref_enu")) from None
 
 
 def ahrs_errors(truth, out):

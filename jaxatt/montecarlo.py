@@ -27,7 +27,7 @@ from . import metrics as M
 from . import progress as _progress
 from . import sharding as _sharding
 from .engine import INIT_PARAMS_BLOCK
-from .types import MAX_RUNS, ImuSample, Observer, check_seed, check_step_count, check_window_start
+from .types import MAX_RUNS, ImuSample, Observer, check_seed, check_step_count, check_window_start, shown
 
 __all__ = [
     "run",
@@ -39,6 +39,7 @@ __all__ = [
     "load_runs",
     "load_result",
     "check_dt",
+    "check_observer",
     "whole_steps",
     "run_keys",
     "seed_key",
@@ -56,10 +57,38 @@ def check_seconds(name: str, value) -> float:
             raise TypeError
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number of seconds, got {value!r}") from None
+        raise ValueError(f"{name} must be a number of seconds, got {shown(value)}") from None
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a finite positive number of seconds, got {value}")
     return v
+
+
+def check_observer(observer) -> Observer:
+    """``observer`` if it is a :class:`jaxatt.types.Observer` (ValueError saying how to get one otherwise)."""
+    if not isinstance(observer, Observer):
+        hint = (
+            f": jaxatt.observers.registry.get({observer!r}).make() builds it (or jaxatt.filter / jaxatt.monte_carlo "
+            "take the name)"
+            if isinstance(observer, str)
+            else ""
+        )
+        raise ValueError(f"observer must be a jaxatt.Observer(init, step), got {type(observer).__name__}{hint}")
+    return observer
+
+
+def check_obs_dtype(dtype):
+    """The observer's arithmetic: None (JAX's default float), float32, or float64 (with x64 on)."""
+    if dtype is None:
+        return None
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
+    if dt == np.float64 and not jax.config.values["jax_enable_x64"]:
+        raise ValueError("dtype float64 needs JAX's x64 mode: call jax.config.update('jax_enable_x64', True) first")
+    return dt
 
 
 def check_dt(dt) -> float:
@@ -213,7 +242,12 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     Returns the observer's Out with a leading time axis: row 0 is ``init``'s estimate at t_0, row k the estimate
     at t_k (:mod:`jaxatt.engine`).
     """
+    check_observer(observer)
+    samples = _real_samples(samples)
     _check_samples(samples)
+    from .api import compute_dtype  # the front door's precision rule (imported when it runs: no cycle)
+
+    compute_dtype(*(v for v in samples if v is not None), what="input (samples)")  # float64 with x64 off: said
     engine.check_hold(hold)
     engine.check_finite_params(params, observer.name)
     if validate is not None:
@@ -226,12 +260,55 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     else:
         steps = check_dt(dt)
     try:
-        return log_runner(observer, hold)(params, samples, steps)
+        out = log_runner(observer, hold)(params, samples, steps)
     except (AttributeError, TypeError) as e:  # params or samples of the wrong kind for this observer, found tracing
         first = (str(e).strip().splitlines() or [""])[0]
         raise ValueError(
             f"observer {observer.name!r}: init or step failed on these params and samples: {type(e).__name__}: {first}"
         ) from e
+    _warn_nonfinite(out, samples.t, observer.name)
+    return out
+
+
+def _real_samples(samples):
+    """``samples`` with lists as numpy arrays; ValueError for a field that is not real numbers (complex, text)."""
+    if not hasattr(samples, "_fields"):
+        return samples  # _check_samples says what it must be
+    fields = {}
+    for name, v in samples._asdict().items():
+        if v is None or isinstance(v, jax.Array):
+            fields[name] = v
+            continue
+        try:
+            a = np.asarray(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"samples.{name} must be an array of numbers, got {type(v).__name__}") from None
+        if a.dtype == bool or not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"samples.{name} must be real numbers, got dtype {a.dtype}")
+        fields[name] = a
+    for name, v in fields.items():
+        if isinstance(v, jax.Array) and not jnp.issubdtype(v.dtype, jnp.floating):
+            if jnp.issubdtype(v.dtype, jnp.complexfloating):
+                raise ValueError(f"samples.{name} must be real numbers, got dtype {v.dtype}")
+    return samples._replace(**fields)
+
+
+def _warn_nonfinite(out, t, name: str) -> None:
+    """A warning naming the first sample whose estimate is not finite (run returns the outputs as they are)."""
+    import warnings
+
+    try:
+        q = engine.estimate_q(out)
+    except ValueError:  # an output without an estimate (q / r): nothing to say of it here
+        return
+    bad = np.asarray(~jnp.all(jnp.isfinite(q), axis=-1))
+    if bad.any():
+        k = int(np.argmax(bad))
+        warnings.warn(
+            f"observer {name!r}: the estimate is first non-finite at sample {k} (t = {float(np.asarray(t)[k]):.6g} s), "
+            f"{int(bad.sum())} of {len(bad)} estimates; check the inputs and gains",
+            stacklevel=3,
+        )
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -352,8 +429,13 @@ def _simulation(
     keep_state=False,
 ):
     """The compiled batch function of a simulated Monte Carlo (scenario, params, keys) -> engine.Result."""
+    check_observer(observer)
+    if not callable(errors_fn):
+        raise ValueError(f"errors_fn must be a function (truth, out) -> dict of errors, got {errors_fn!r}")
+    dtype = check_obs_dtype(dtype)
     dt = check_dt(dt)
     duration = check_duration(duration)
+    window_start = check_window_start(window_start, duration)
     trace_every = check_count("trace_every", trace_every or 0)
     engine.check_hold(hold)
     n_steps = whole_steps(duration, dt)
@@ -412,7 +494,7 @@ def simulate(
         init_params=init_params,
         keep_state=True,
     )
-    res = fn(scenario, params, run_keys(seed, [run_index]))
+    res = fn(scenario, params, run_keys(check_seed(seed), [check_count("run_index", run_index, 0, MAX_RUNS - 1)]))
     first = lambda a: np.asarray(a)[0]  # noqa: E731
     scalar = lambda a: float(first(a)) if np.ndim(a) == 1 else first(a)  # noqa: E731
     return (
@@ -449,7 +531,10 @@ def simulate_log(scenario, *, duration: float, dt: float, seed: int = 0, run_ind
     check_scenario(scenario)
     dt = check_dt(dt)
     n_steps = check_step_count(check_duration(duration), dt)
-    keys = run_keys(seed, [run_index]) if key is None else jnp.asarray(key)[None]
+    if key is None:
+        keys = run_keys(check_seed(seed), [check_count("run_index", run_index, 0, MAX_RUNS - 1)])
+    else:
+        keys = jnp.asarray(key)[None]
     _, sim_dtype = _dtypes(None)
     # Simulated whole noise blocks, the log cut after: the first n steps of a longer run are the same numbers,
     # and logs of any length up to a block share one compiled program (a test suite simulates dozens of lengths).
@@ -574,6 +659,10 @@ def monte_carlo(
     and the decimated traces; never the per-step trajectories.
     """
     check_scenario(scenario)
+    check_observer(observer)
+    for name, fn in (("validate", validate), ("on_chunk", on_chunk), ("init_params", init_params)):
+        if fn is not None and not callable(fn):
+            raise ValueError(f"{name} must be a function or None, got {fn!r}")
     runs = check_count("runs", runs, 1, MAX_RUNS)
     chunk = check_count("chunk", chunk, 1)
     seed = check_seed(seed)

@@ -39,7 +39,7 @@ def _write_csv(path, t, gyr, acc, mag):
     np.savetxt(path, np.column_stack([t, gyr, acc, mag]), delimiter=",", header=header, comments="")
 
 
-def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True, inf=False):
+def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True, inf=False, truth_norm=1.0):
     h5py = pytest.importorskip("h5py")
     t, gyr, acc, mag = _log_rows(n)
     if inf:
@@ -50,7 +50,7 @@ def _write_trial(path, n=600, rate=100.0, drop=(), truncate=False, truth=True, i
             "imu_gyr": gyr,
             "imu_acc": acc,
             "imu_mag": mag,
-            "opt_quat": np.tile([1.0, 0, 0, 0] if truth else [np.nan] * 4, (n, 1)),
+            "opt_quat": np.tile([truth_norm, 0, 0, 0] if truth else [np.nan] * 4, (n, 1)),
             "movement": np.ones(n),
         }.items():
             if k not in drop:
@@ -107,6 +107,8 @@ def make_files(d: Path) -> None:
         "truncated": {"truncate": True},
         "no_truth": {"truth": False},
         "inf": {"inf": True},
+        "norm2": {"truth_norm": 2.0},
+        "rate_bool": {"rate": True},
     }.items():
         (d / f"trials_{name}").mkdir()
         _write_trial(d / f"trials_{name}" / f"01_{name}.hdf5", **kw)
@@ -335,6 +337,9 @@ BAD_INPUT = [
     ),
     # a study's gains file with a value its theorem refuses: named by the file, the array on the same line
     (["evaluate", "--experiment", "batista-so3", "--gains", "{d}/so3_negative.json"], r"so3_negative.*alpha1.*-1"),
+    # a BROAD file read with the checks every trial gets (a truth of norm 2 was accepted), a boolean rate
+    (["broad", "--data-dir", "{d}/trials_norm2"], r"01_norm2: quat_true\[0\] has norm 2"),
+    (["broad", "--data-dir", "{d}/trials_rate_bool"], r"sampling_rate attribute must be one number"),
     # your own observer on the simulated IMU is Python's jaxatt.monte_carlo (it was "invalid choice")
     (
         ["simulate", "--observer", "my_filters:OBSERVER", "--runs", "2"],
@@ -493,6 +498,23 @@ API_BAD = [
     (
         lambda g, a, m: montecarlo.run(*_madgwick(), _log(g, a, m)._replace(gyr=g[:10])),
         r"samples.t and samples.gyr must have one row per sample: t has shape \(100,\), gyr \(10, 3\)",
+    ),
+    # a name where an Observer goes, complex readings, a dt array (printed over many lines), a negative run
+    (lambda g, a, m: montecarlo.run("madgwick", None, _log(g, a, m)), r"observer must be a jaxatt.Observer.*get\("),
+    (
+        lambda g, a, m: montecarlo.run(*_madgwick(), _log(g + 0j, a, m)),
+        r"samples.gyr must be real numbers, got dtype c",
+    ),
+    (lambda g, a, m: montecarlo.run(*_madgwick(), _log(g, a, m), dt=np.full(99, 0.01)), r"dt must be a number of sec"),
+    (
+        lambda g, a, m: montecarlo.simulate_log(jaxatt.ahrs_scenario(), duration=1.0, dt=0.01, run_index=-1),
+        r"run_index must be",
+    ),
+    (
+        lambda g, a, m: montecarlo.monte_carlo(
+            jaxatt.ahrs_scenario(), "madgwick", None, runs=1, duration=1.0, dt=0.01, errors_fn=jaxatt.api.ahrs_errors
+        ),
+        r"observer must be a jaxatt.Observer",
     ),
 ]
 

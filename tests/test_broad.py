@@ -547,6 +547,7 @@ def _synthetic_trial(name="01_x", n=50, rate=100.0):
         (lambda tr: [tr._replace(movement=tr.movement[:10])], r"movement must be a bool array of shape \(50,\)"),
         (lambda tr: [tr._replace(movement=tr.movement.astype(float))], r"movement must be a bool array"),
         (lambda tr: [tr._replace(rate_hz=float("nan"))], r"rate_hz must be a positive number"),
+        (lambda tr: [tr._replace(rate_hz="100")], r"rate_hz must be a number of Hz, got '100'"),
         (lambda tr: [tr._replace(rate_hz=285.714)], r"rate_hz = 285.714 Hz but samples.t steps by 0.01 s"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(acc=None))], r"samples.acc must have shape"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(t=None))], r"samples.t must have shape \(N,\) = \(50,\)"),

@@ -443,7 +443,9 @@ def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_l
         (lambda g, a, m: jaxatt.filter(MY_OBSERVER, g, a, m, dt=0.01, params="g.json"), "read_params\\(path, base="),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, frame="XYZ"), "frame"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=np.full(len(g), 0.01)), r"dt must be one number.*give t"),
-        (lambda g, a, m: jaxatt.api.ahrs_scenario(mag_ref_enu="abc"), "mag_ref_nav must be numbers"),
+        (lambda g, a, m: jaxatt.api.ahrs_scenario(mag_ref_enu="abc"), "mag_ref_enu must be 3 real numbers"),
+        (lambda g, a, m: jaxatt.api.ahrs_scenario(mag_ref_enu=(0, 0, 5)), "mag_ref_enu must be non-zero and not vert"),
+        (lambda g, a, m: jaxatt.api.ahrs_scenario(mag_noise_std="a"), "mag_noise_std must be a real number"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, dt=0.01, hold="foh"), "hold"),
         (lambda g, a, m: jaxatt.filter("robust", g, a, m, t=np.zeros(len(g)), dt=None), "increasing"),
         (lambda g, a, m: jaxatt.filter("robust", np.full_like(g, np.inf), a, m, dt=0.01), "inf"),
@@ -1128,6 +1130,25 @@ def test_a_monte_carlo_saved_to_a_file_is_resumed_from_it(tmp_path):
     assert jaxatt.monte_carlo("mahony", runs=2, **kw, out="/dev/null", resume=True).complete  # nothing kept there
     with pytest.raises(ValueError, match="seed must be"):  # checked before the file's spec is made of it
         jaxatt.monte_carlo("mahony", runs=2, **{**kw, "seed": None}, out=tmp_path / "s.npz")
+
+
+def test_montecarlo_run_warns_of_float64_computed_in_float32_and_of_a_non_finite_estimate():
+    """montecarlo.run (the README's lower-level runner) follows the front door's rules: float64 samples with x64
+    off are said to run in float32, and a non-finite estimate is said with its sample and time (both were silent)."""
+    entry = registry.get("madgwick")
+    samples, _ = montecarlo.simulate_log(jaxatt.ahrs_scenario(), duration=1.0, dt=0.01)
+    s64 = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), samples)
+    with jax.enable_x64(False):
+        with pytest.warns(UserWarning, match=r"float64 input \(samples\) is computed in float32"):
+            montecarlo.run(registry.recorded_observer(entry), entry.default_params(), s64)
+
+    def nan_step(p, st, s, dt):
+        new, out = my_step(p, st, s, dt)
+        q = jnp.where(new.t > 0.5, jnp.nan, new.q)
+        return new._replace(q=q), out._replace(q=q)
+
+    with pytest.warns(UserWarning, match=r"'nan_after': the estimate is first non-finite at sample 5\d \(t = 0.5"):
+        montecarlo.run(Observer(my_init, nan_step, "nan_after"), MY_PARAMS, samples, hold="next")
 
 
 def test_float64_gains_of_a_monte_carlo_without_x64_are_warned_about():

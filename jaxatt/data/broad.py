@@ -173,7 +173,7 @@ def load_trial(path) -> Trial:
             if missing or "sampling_rate" not in f.attrs:
                 raise ValueError(f"{path.name}: not a BROAD trial (missing {missing or ['sampling_rate attribute']})")
             rate_attr = np.asarray(f.attrs["sampling_rate"])
-            if rate_attr.size != 1:
+            if rate_attr.size != 1 or rate_attr.dtype == bool:
                 raise ValueError(f"{path.name}: the sampling_rate attribute must be one number, got {rate_attr!r}")
             try:
                 rate = float(rate_attr.reshape(()))
@@ -208,7 +208,8 @@ def load_trial(path) -> Trial:
         group = group_of(path.stem, load_trial_info(path.parent))
     except ValueError:
         group = ""
-    return Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate, group)
+    # the checks every trial gets (unit truth, a bool movement of one row per sample), naming the file
+    return check_trials([Trial(path.stem, ImuSample(t, gyr, acc, mag), quat, movement, rate, group)], path.name)[0]
 
 
 def check_trials(trials, what: str = "trials", need_scored: bool = False) -> List[Trial]:
@@ -266,6 +267,8 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
                 "(a 0 / 1 array: .astype(bool))"
             )
         try:
+            if isinstance(tr.rate_hz, (str, bytes, bool, np.bool_)):  # float("100") works, and then arithmetic fails
+                raise TypeError
             rate = float(tr.rate_hz)
         except (TypeError, ValueError):
             raise ValueError(f"{where}: rate_hz must be a number of Hz, got {tr.rate_hz!r}") from None

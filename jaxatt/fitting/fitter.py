@@ -939,6 +939,7 @@ def _fit(
         "train_runs": train_runs != TRAIN_RUNS,
         "val_runs": val_runs != VAL_RUNS,
         "refine_schedule": len(refine_schedule) > 0,
+        "devices": devices is not None,  # recorded trials run on one device
     }
     given = [k for k, v in study_only.items() if v]
     if given:
