@@ -85,11 +85,14 @@ def _time(t) -> np.ndarray:
 
 
 def _directions(v, T: int, name: str):
-    """(T, n, 3) unit directions and (T, n) validity; ``v`` (T, n, 3), constant (n, 3), or None (n = 0)."""
+    """(T, n, 3) unit directions and (T, n) validity; ``v`` (T, n, 3), constant (n, 3), one time-varying direction
+    (T, 3) (one row per sample, T > 3: read as (T, 1, 3), not as T constant directions), or None (n = 0)."""
     if v is None:
         return np.zeros((T, 0, 3)), np.zeros((T, 0), bool)
     v = np.asarray(v, float)
-    if v.ndim == 2 and v.shape[-1] == 3:
+    if v.ndim == 2 and v.shape == (T, 3) and T > 3:
+        v = v[:, None, :]
+    elif v.ndim == 2 and v.shape[-1] == 3:
         v = np.broadcast_to(v, (T,) + v.shape)
     if v.ndim != 3 or v.shape[0] != T or v.shape[2] != 3:
         raise ValueError(f"{name} must have shape (T, n, 3) with T = {T} (or (n, 3) if constant), got {v.shape}")
@@ -205,9 +208,10 @@ def excitation(
         t: (T,) sample times (s), strictly increasing.
         window: window length δ (s); windows start at every ``stride``-th sample and end at the first sample
             at or after t + window; windows running past the log are dropped.
-        ref_inertial: å_i, (T, n1, 3) or constant (n1, 3), inertial frame; None if n1 = 0.
+        ref_inertial: å_i, (T, n1, 3) or constant (n1, 3), inertial frame; None if n1 = 0. One time-varying
+            direction may be given as (T, 3) (one row per sample).
         inertial_meas: compatible measurements b_j = R b̊_j, (T, n2, 3), inertial frame; None if n2 = 0.
-        ref_body: b̊_j, (T, n2, 3) or constant (n2, 3), body frame (needed when n2 > 0).
+        ref_body: b̊_j, (T, n2, 3) or constant (n2, 3), body frame (needed when n2 > 0); (T, 3) as above.
         gyr: (T, 3) angular velocity Omega (rad/s, body) (needed when n2 > 0).
         gains: (n1 + n2,) q of eq. (12) (k_i then l_j); default 1.
         max_gap: a sample interval longer than this (s) contributes nothing (default 10 x the median interval).

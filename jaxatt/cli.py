@@ -390,9 +390,11 @@ def _parser() -> _Parser:
         "--gyro-noise",
         type=_nonneg,
         default=None,
-        help="gyro white noise per sample, rad/s (AHRS filters too, default 0.001)",
+        help="gyro white noise per sample, rad/s (complementary: default 0, noise-free; AHRS filters: default 0.001)",
     )
-    c.add_argument("--vector-noise", type=_nonneg, default=None, help="noise per component of the unit vectors")
+    c.add_argument(
+        "--vector-noise", type=_nonneg, default=None, help="noise per component of the unit vectors (default 0)"
+    )
     a = sp.add_argument_group(
         "AHRS filters (madgwick, mahony, mekf, nlo, nlio, nlio-fg, robust, vqf, vqf-6d)",
         "a simulated IMU in ENU (jaxatt.api.ahrs_scenario): also --gyro-noise, --mag-noise (nT), --rate-scale and "
@@ -516,7 +518,7 @@ def _parser() -> _Parser:
     ep.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="unit of the log's t column (default s)")
     ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
     ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
-    ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s")
+    ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s (default 5)")
     ep.add_argument(
         "--mag-ref",
         type=_floats(3),

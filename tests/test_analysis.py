@@ -162,6 +162,9 @@ def test_rotating_cone_closed_form():
     np.testing.assert_allclose(ex.eigenvalues / period, [[0.375, 0.375, 0.25]] * len(ex.t_start), atol=1e-9)
     np.testing.assert_allclose(ex.lambda_min_projector / period, 0.625, atol=1e-9)
     np.testing.assert_allclose(ex.condition, ex.lambda2)  # no compatible measurement
+    # the one direction as (T, 3), one row per sample: the same (it was read as T constant directions)
+    flat = A.excitation(t, window=period, ref_inertial=a[:, 0], stride=50)
+    np.testing.assert_allclose(flat.eigenvalues, ex.eigenvalues, rtol=1e-12)
 
 
 def test_scenarios_excitation():

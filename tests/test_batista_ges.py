@@ -334,3 +334,21 @@ def test_shipped_gradient_gains():
     a1, a2 = (np.asarray(x) for x in ges._schedule(q, jnp.asarray(t)))
     memory = a1 / a2
     assert np.all(np.diff(memory) >= 0) and memory[-1] > 2.0 * memory[0]
+
+
+def test_a_field_too_weak_for_the_papers_gain_is_warned_about():
+    """The paper's attitude gain scales with |I_m|: noise-free, Lisbon's field at a quarter of its size (or in uT)
+    does not converge within 3600 s (measured by `jaxatt simulate --reference`), so the study says so; the
+    paper's field, and the field at half its size (which converges), are not warned about."""
+    import warnings
+
+    from jaxatt.sim import earth
+    from jaxatt.studies import batista_ges as S
+
+    lisbon = np.asarray(earth.LISBON_FIELD_NED_NT)
+    with pytest.warns(UserWarning, match=r"\|I_m\| = 44.9 nT: the paper's attitude gain .* does not converge"):
+        S.config(reference_nT=tuple(lisbon / 1e3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        S.config()
+        S.config(reference_nT=tuple(lisbon / 2))

@@ -340,6 +340,8 @@ BAD_INPUT = [
     # a BROAD file read with the checks every trial gets (a truth of norm 2 was accepted), a boolean rate
     (["broad", "--data-dir", "{d}/trials_norm2"], r"01_norm2: quat_true\[0\] has norm 2"),
     (["broad", "--data-dir", "{d}/trials_rate_bool"], r"sampling_rate attribute must be one number"),
+    # an initial R^ of rank < 3: R_f's start, its nearest rotation, is not defined (it silently became the truth)
+    (["simulate", "--observer", "batista-ges", *MC, "--r0", "0,0,0,0,0,0,0,0,0"], r"r_hat_0 must have rank 3"),
     # your own observer on the simulated IMU is Python's jaxatt.monte_carlo (it was "invalid choice")
     (
         ["simulate", "--observer", "my_filters:OBSERVER", "--runs", "2"],
@@ -487,6 +489,12 @@ API_BAD = [
     (lambda g, a, m: jaxatt.monte_carlo("madgwick", runs=0, duration=1.0), r"runs must be >= 1"),
     (lambda g, a, m: jaxatt.fit("madgwick", None, "nonsense"), r"unknown study 'nonsense'"),
     (lambda g, a, m: jaxatt.fit("madgwick", None, [1, 2]), r"Trial"),
+    (  # another study's Config (an AttributeError deep inside)
+        lambda g, a, m: jaxatt.studies.reproduce(
+            jaxatt.studies.get("batista-ges"), jaxatt.studies.get("batista-so3").config(), runs=1
+        ),
+        r"cfg must be the batista-ges study's Config .*got jaxatt.studies.batista_so3.Config",
+    ),
     (lambda g, a, m: jaxatt.broad_score("madgwick", None, "/nonexistent"), r"Trial"),
     # the lower-level montecarlo functions of the README
     (lambda g, a, m: montecarlo.simulate_log("rotating", duration=1.0, dt=0.01), r"scenario must be a simulated .*str"),

@@ -310,6 +310,11 @@ def check_params(p: Params) -> None:
         v = np.asarray(v, float)
         if v.shape != shape or not np.all(np.isfinite(v)):
             raise ValueError(f"{name} must be a finite array of shape {shape}, got {v.shape}")
+    sv = np.linalg.svd(np.asarray(p.r_hat_0, float), compute_uv=False)
+    if sv[-1] <= 1e-9 * max(sv[0], 1e-300):  # R_f(t0), its nearest rotation (Theorem 3), is not defined
+        raise ValueError(
+            f"r_hat_0 must have rank 3 (its nearest rotation starts R_f, Theorem 3), got singular values {shown(sv)}"
+        )
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -483,6 +483,13 @@ def reproduce(
     """
     from .. import montecarlo
 
+    if not isinstance(study, Study):
+        raise ValueError(f"study must be a jaxatt study (jaxatt.studies.get(name)), got {type(study).__name__}")
+    if type(cfg) is not type(study.config()):
+        raise ValueError(
+            f"cfg must be the {study.name} study's Config (jaxatt.studies.get({study.name!r}).config(...)), got "
+            f"{type(cfg).__module__}.{type(cfg).__name__}"
+        )
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
     if resume and not runs_file(json_path):

@@ -182,6 +182,21 @@ def check_config(cfg) -> None:
             "use its powers), "
             f"got {ref.tolist()}"
         )
+    if np.linalg.norm(ref) < WEAK_FIELD_NT:
+        import warnings
+
+        warnings.warn(
+            f"reference: |I_m| = {np.linalg.norm(ref):.4g} nT: the paper's attitude gain (Section IV's Q, written for "
+            f"Lisbon's {np.linalg.norm(earth.LISBON_FIELD_NED_NT):.3g} nT) scales with the field, and below about "
+            f"{WEAK_FIELD_NT:.0e} nT the attitude does not converge within the paper's 3600 s (measured, noise-free: "
+            "2.2e4 nT converges, 1.1e4 nT does not); give the field in nT, or tune the gains for it (jaxatt tune)",
+            stacklevel=3,
+        )
+
+
+#: |I_m| (nT) below which the paper's attitude gain does not converge within 3600 s (noise-free, measured between
+#: 2.2e4 nT, which converges, and 1.1e4 nT, which does not): warned about
+WEAK_FIELD_NT = 2e4
 
 
 def comparable(cfg) -> "str | None":
@@ -249,7 +264,7 @@ class BatistaStudy(base.Study):
         if a_max * cfg.dt >= RK4_REAL_LIMIT:
             raise ValueError(
                 f"dt = {cfg.dt:g} s is too long for alpha1 = {a_max:g} 1/s: RK4 is stable for alpha1 dt < "
-                f"{RK4_REAL_LIMIT} (here {a_max * cfg.dt:.3g}); use dt <= {RK4_REAL_LIMIT / a_max:.4g} s"
+                f"{RK4_REAL_LIMIT} (here {a_max * cfg.dt:.3g}); use dt < {RK4_REAL_LIMIT / a_max:.4g} s"
             )
 
     def plot(self, cfg, payload, results, path, dtype=None):
