@@ -528,6 +528,7 @@ def test_evaluate_at_a_short_duration_scales_the_windows_a_gains_file_recorded(t
     assert cli.main([*argv, "--duration", "2", "--json", str(out)]) == 0, capsys.readouterr().err
     d = json.loads(out.read_text())
     assert [w[1:] for w in d["config"]["windows"]] == [[0.0, 0.8], [1.2, 2.0]]
+    assert "Transient (0-0.8 s)" in d["tables_text"] and "Steady-State (1.2-2 s)" in d["tables_text"]  # not 0-200
     assert all(np.all(np.isfinite(m["mean"])) for m in d["metrics"].values())
 
 

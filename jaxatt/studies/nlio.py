@@ -411,12 +411,18 @@ def table_values(per_run: dict, metric: str, windows=("transient", "steady")) ->
     return [float(np.nanmean(per_run[f"{metric}_{w}_{a}"])) for w in windows for a in ANGLES]
 
 
-def format_table(title: str, measured: Dict[str, list], paper: Dict[str, tuple], runs: int) -> str:
+def format_table(title: str, measured: Dict[str, list], paper: Dict[str, tuple], runs: int, windows=None) -> str:
     """A table laid out like the paper's: rows per observer (paper, measured, ratio), columns roll/pitch/yaw in the
-    transient and steady-state windows."""
+    transient and steady-state windows (``windows``: their (name, start_s, end_s), labelled with the times used;
+    default the paper's 0-200 s and 300-500 s)."""
     names = list(measured) + [n for n in paper if n not in measured]
     w = 9
-    head = f"{'':22s}" + f"{_T[0]:^{3 * w}s}  " + f"{_T[1]:^{3 * w}s}"
+    spans = {n: (lo, hi) for n, lo, hi in (windows or ())}
+    labels = [
+        f"{label} ({spans[key][0]:g}-{spans[key][1]:g} s)" if key in spans else default
+        for key, label, default in (("transient", "Transient", _T[0]), ("steady", "Steady-State", _T[1]))
+    ]
+    head = f"{'':22s}" + f"{labels[0]:^{3 * w}s}  " + f"{labels[1]:^{3 * w}s}"
     cols = (
         f"{'':22s}"
         + "".join(f"{c:>{w}s}" for c in ("Roll", "Pitch", "Yaw"))
@@ -531,7 +537,15 @@ def format_report(payload: dict) -> str:
         )
         if metric == "rmse" and label:
             title += " [paper columns read as roll, yaw, pitch]"
-        text.append(format_table(title, {n: e[metric] for n, e in done.items()}, paper_values(key, metric), n_runs))
+        text.append(
+            format_table(
+                title,
+                {n: e[metric] for n, e in done.items()},
+                paper_values(key, metric),
+                n_runs,
+                windows=[tuple(w) for w in c["windows"]],
+            )
+        )
     windows = [tuple(w) for w in c["windows"]]
     for w, lo, hi in windows[2:]:
         lines = [f"{w} window ({lo:g}-{hi:g} s), MAE / RMSE (deg): roll pitch yaw"]
