@@ -59,6 +59,14 @@ def trial_arrays(trials):
     return [a for t in trials for a in (t.samples.gyr, t.samples.acc, t.samples.mag)]
 
 
+def _dtype_of(a) -> np.dtype:
+    """An array's dtype without copying it to the host (a JAX array's own), or numpy's reading of a list."""
+    try:
+        return np.dtype(a.dtype)
+    except (AttributeError, TypeError):  # a list, a number, another library's dtype
+        return np.asarray(a).dtype
+
+
 def compute_dtype(*arrays, dtype=None, what: str = "input"):
     """The arithmetic for arrays of the given dtypes: ``dtype`` if given; float64 when any input is float64 and x64
     is on; float32 otherwise (with a warning when float64 input is computed in float32)."""
@@ -73,7 +81,7 @@ def compute_dtype(*arrays, dtype=None, what: str = "input"):
         if dt == np.float64 and not x64:
             raise ValueError("dtype float64 needs JAX's x64 mode: call jax.config.update('jax_enable_x64', True) first")
         return dt
-    wide = any(np.asarray(a).dtype == np.float64 for a in arrays if a is not None)
+    wide = any(_dtype_of(a) == np.float64 for a in arrays if a is not None)
     if wide and not x64:
         warnings.warn(
             f"float64 {what} is computed in float32 because JAX's x64 mode is off; call "
