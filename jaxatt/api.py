@@ -1263,6 +1263,8 @@ def monte_carlo(
                 f"out {out}: exists; pass resume=True to continue its runs or overwrite=True to replace them"
             )
         user_on_chunk = on_chunk
+        if user_on_chunk is not None and not callable(user_on_chunk):
+            raise ValueError(f"on_chunk must be a function or None, got {user_on_chunk!r}")
 
         def on_chunk(result):
             if io.is_main_process():  # several processes: process 0 writes the file
