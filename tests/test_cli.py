@@ -77,7 +77,7 @@ def test_a_step_beyond_rk4s_stability_is_refused_before_computing(tmp_path, caps
     argv = ["simulate", "--observer", "batista-ges", "--runs", "1", "--duration", "30", "--json", str(out)]
     assert cli.main([*argv, "--dt", "0.03"]) == 2
     err = capsys.readouterr().err
-    assert "dt = 0.03 s is too long for alpha1 = 100" in err and "dt <= 0.0278" in err and len(err.splitlines()) == 1
+    assert "dt = 0.03 s is too long for alpha1 = 100" in err and "dt < 0.0278" in err and len(err.splitlines()) == 1
     assert not out.exists()
 
 

@@ -513,7 +513,7 @@ def test_fit_refuses_a_step_beyond_rk4s_stability_before_computing(tmp_path):
     (Table 1's alpha1 = 100 1/s, alpha1 dt = 3 > 2.78) would go non-finite; refused with the longest step that
     works, before any program is compiled (no gains file written)."""
     out = tmp_path / "g.json"
-    with pytest.raises(ValueError, match=r"dt = 0.03 s is too long for alpha1 = 100 .*dt <= 0.0278"):
+    with pytest.raises(ValueError, match=r"dt = 0.03 s is too long for alpha1 = 100 .*dt < 0.0278"):
         fitter.fit(None, None, "batista-ges", steps=1, out=str(out), config={"dt": 0.03, "duration": 30.0})
     assert not out.exists()
 
