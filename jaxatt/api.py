@@ -454,11 +454,12 @@ def _median_finite(x) -> float:
     return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
 
 
-def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
+def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True, warn_fields=None):
     """:func:`recording_defaults` for a batch of trials sharing one params: the median over the trials of their
     first step (s) and of their first field readings' norms. Trials far from the median (a field in another unit,
-    another sampling rate, compared by their median steps) are warned about unless ``warn`` is False (a fit whose
-    start gains may set those fields): the defaults fit them poorly, and their scores depend on the batch."""
+    another sampling rate, compared by their median steps) are warned about unless ``warn`` is False: the defaults
+    fit them poorly, and their scores depend on the batch. ``warn_fields``: only those fields are shared (e.g. the
+    gains a fit tunes; the others are each trial's own, :func:`recording_defaults_per_trial`); None: all."""
     steps = [float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])) for tr in trials]
     norms = [_first_field_norm(tr.samples.mag) for tr in trials]
     step, norm = _median_finite(steps), _median_finite(norms)
@@ -471,6 +472,7 @@ def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
              (entry.first_step,) if entry.first_step else (), 1.1, 1.1, "another sampling rate"),
         )  # fmt: skip
         for what, values, value, fields, most, far_from, why in cases:
+            fields = tuple(f for f in fields if warn_fields is None or f in warn_fields)
             if not [f for f in fields if f not in named] or _spread(values) <= most:
                 continue
             far = [tr.name for tr, v in zip(trials, values) if _spread([v, value]) > far_from]
@@ -482,6 +484,33 @@ def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
                 stacklevel=3,
             )
     return recording_defaults(entry, given, p, first_step=step, field_norm=norm)
+
+
+def recording_defaults_per_trial(entry, given, p, trials):
+    """(``p``, ``run_params``): :func:`recording_defaults` of each trial, for a batch whose runs may each have
+    their own params (:data:`jaxatt.engine.RUN_PARAMS`): ``run_params`` is ``{field: (B, ...)}`` for the
+    data-dependent fields whose defaults differ between the trials (their sampling steps, s; their magnetometers'
+    units), None when none does; ``p`` holds the median's (:func:`recording_defaults_for_trials`). A trial's score
+    then does not depend on the trials beside it."""
+    p_shared = recording_defaults_for_trials(entry, given, p, trials, warn=False)
+    if entry is None or len(trials) < 2 or not (given is None or isinstance(given, (dict, str))):
+        return p_shared, None
+    own = [
+        recording_defaults(
+            entry,
+            given,
+            p,
+            first_step=float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])),
+            field_norm=_first_field_norm(tr.samples.mag),
+        )
+        for tr in trials
+    ]
+    fields = [f for f in ((entry.first_step,) if entry.first_step else ()) + tuple(entry.field_unit_gains or ())]
+    differ = [f for f in fields if any(not np.array_equal(np.asarray(getattr(o, f)), np.asarray(getattr(own[0], f)))
+                                       for o in own[1:])]  # fmt: skip
+    if not differ:
+        return own[0], None
+    return p_shared, {f: np.stack([np.asarray(getattr(o, f)) for o in own]) for f in differ}
 
 
 def _spread(values) -> float:
@@ -998,7 +1027,7 @@ def broad_score(
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
     trials = trials_start_from_valid(entry, trials)
-    p = recording_defaults_for_trials(entry, params, p, trials)
+    p, run_params = recording_defaults_per_trial(entry, params, p, trials)  # each trial its own, as filter does
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
@@ -1025,7 +1054,7 @@ def broad_score(
     p_run = engine.cast_floats(p, dt_)  # as in filter: weakly typed gains reuse the compiled program
     t0 = time.perf_counter()
     if spec is None:
-        res = B.score(obs, p_run, trials, hold=hold, dtype=dt_)
+        res = B.score(obs, p_run, trials, hold=hold, dtype=dt_, run_params=run_params)
     else:
         smoothing.check_time_reversed(obs, p_run, name)
         heading = ("mag" in entry.needs) if entry is not None else True
@@ -1037,18 +1066,20 @@ def broad_score(
             offline=spec,
             heading=heading,
             start_from_present=_starts_from_first_sample(entry),
+            run_params=run_params,
         )
         summary = jax.device_get(metric(p_run, engine.cast_floats(spec.fusion, dt_)))  # not jitted: see there
         res = {tr.name: {m: float(summary[m][i]) for m in B.METRICS} for i, tr in enumerate(trials)}
         name = f"{name}+offline"
     wall = time.perf_counter() - t0
     per = {}
-    for tr in trials:
+    for i, tr in enumerate(trials):
         m = res[tr.name]
         if not np.any(B.scored_samples(tr)):  # documented: no ground truth to score against -> NaN, not in the means
             m = {k: float("nan") for k in m}
         elif not all(np.isfinite(v) for v in m.values()):
-            where = _where_nonfinite(obs, p_run, tr, hold, dt_, spec)
+            own = engine.with_run_params(p_run, {k: v[i] for k, v in (run_params or {}).items()}, dt_)
+            where = _where_nonfinite(obs, own, tr, hold, dt_, spec)
             raise FloatingPointError(
                 f"{name}: the BROAD metric of trial {tr.name} is not finite ({m}); "
                 + (where or "the estimate diverged (check the gains)")

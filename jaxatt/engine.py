@@ -485,6 +485,27 @@ def _concat_records(parts):
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a, 0), *parts)
 
 
+#: The key of a recorded batch item (:class:`Recorded`) holding params of each run: ``{field: (B, ...)}`` replaces
+#: those fields of the shared params in run b (e.g. each recording's own data-dependent defaults: its sampling
+#: time, its magnetometer's unit; :func:`jaxatt.api.recording_defaults_per_trial`). Constants: no gradient flows
+#: to the shared params' value of such a field.
+RUN_PARAMS = "params"
+
+
+def with_run_params(params, run_params, dtype=None):
+    """``params`` with the fields that ``run_params`` (a dict of one run's values, or None) names replaced (a
+    NamedTuple's or a dict's fields; floats cast to ``dtype`` when given)."""
+    if not run_params:
+        return params
+    new = {k: (jnp.asarray(v).astype(dtype) if dtype is not None and jnp.issubdtype(jnp.asarray(v).dtype, jnp.floating)
+               else v) for k, v in run_params.items()}  # fmt: skip
+    if isinstance(params, dict):
+        return {**params, **new}
+    if hasattr(params, "_replace"):
+        return params._replace(**new)
+    raise ValueError(f"per-run params need NamedTuple or dict params, got {type(params).__name__}")
+
+
 def batch_fn(
     observer: Observer,
     source,
@@ -533,32 +554,34 @@ def batch_fn(
     def fn(world, params, batch, group=0, n_groups=1):
         world = source.prepare(world)
         p = cast_floats(params, obs_dtype)
+        per_run = batch.get(RUN_PARAMS) if isinstance(batch, dict) else None  # {field: (B, ...)} or None
 
         def init_one(item):
             src, s0, truth0, t0 = source.first(world, item)
-            p0 = cast_floats(source.params_for_init(p, item), obs_dtype)
+            p_run = with_run_params(p, item.get(RUN_PARAMS) if isinstance(item, dict) else None, obs_dtype)
+            p0 = cast_floats(source.params_for_init(p_run, item), obs_dtype)
             st0 = cast_floats(observer.init(p0, s0), obs_dtype)
             s0 = cast_floats(s0, obs_dtype)
-            out0 = initial_output(observer, p, st0, s0, jnp.ones((), obs_dtype))
+            out0 = initial_output(observer, p_run, st0, s0, jnp.ones((), obs_dtype))
             acc0, rec0 = reducer.init(t0, truth0, out0)
             return (src, s0, st0, acc0), rec0
 
-        def step_one(k, src, s_prev, st, acc, x, const):
+        def step_one(k, src, s_prev, st, acc, x, const, run_params):
             src, s_next, truth, t_next, dt = source.advance(world, src, k, x, const)
             s_next = cast_floats(s_next, obs_dtype)
             u = s_prev if hold == "zoh" else (s_next if hold == "next" else Interval(s_prev, s_next))
-            st, out = observer.step(p, st, u, jnp.asarray(dt, obs_dtype))
+            st, out = observer.step(with_run_params(p, run_params, obs_dtype), st, u, jnp.asarray(dt, obs_dtype))
             acc, rec = reducer.update(acc, t_next, truth, out)
             return src, s_next, st, acc, rec
 
-        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1, -1), out_axes=-1)
+        step_b = jax.vmap(step_one, in_axes=(None, -1, -1, -1, -1, -1, -1, 0), out_axes=-1)
         if step_remat:
             step_b = jax.checkpoint(step_b, prevent_cse=False)
         consts = jax.vmap(lambda item: source.constants(world, item), out_axes=-1)(batch)
 
         def step(carry, x):
             k = carry[0]
-            src, s, st, acc, rec = step_b(*carry, x, consts)
+            src, s, st, acc, rec = step_b(*carry, x, consts, per_run)
             return (k + 1, src, s, st, acc), rec
 
         def run_steps(carry, block_index, offset, length):

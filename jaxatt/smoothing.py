@@ -516,8 +516,9 @@ def passes_fn(
 
     def fn(params, item, lengths):
         lengths = jnp.asarray(lengths)
-        item = {"samples": item["samples"], "dt": item["dt"], "truth": None}
-        rev = reverse_item(item, lengths, hold, start_from_present=start_from_present)
+        per_run = {engine.RUN_PARAMS: item[engine.RUN_PARAMS]} if engine.RUN_PARAMS in item else {}
+        item = {"samples": item["samples"], "dt": item["dt"], "truth": None, **per_run}
+        rev = {**reverse_item(item, lengths, hold, start_from_present=start_from_present), **per_run}
         fwd = run(None, params, item).records
         bwd = run(None, reversed_params(observer, params), rev).records
         b_fwd = b_bwd = None
@@ -528,7 +529,8 @@ def passes_fn(
             b_bwd = _last(fwd["bias"], lengths)
             s = item["samples"]
             item = {**item, "samples": s._replace(gyr=s.gyr - b_fwd[:, None, :].astype(s.gyr.dtype))}
-            rev = reverse_item({**item, "samples": s}, lengths, hold, bias=b_bwd, start_from_present=start_from_present)
+            back = reverse_item({**item, "samples": s}, lengths, hold, b_bwd, start_from_present)
+            rev = {**back, **per_run}
             fwd = run(None, params, item).records
             bwd = run(None, reversed_params(observer, params), rev).records
         n = fwd["q"].shape[1]
@@ -675,6 +677,7 @@ def broad_metric_fn(
     heading: bool = True,
     segment: int = 0,
     start_from_present: bool = False,
+    run_params: Optional[dict] = None,
 ):
     """``fn(params, fusion) -> {metric: (B,) RMSE deg}``: the BROAD metric (:data:`jaxatt.data.broad.METRICS`) of
     the offline estimate of ``observer`` on ``trials`` (padded, all in one batch), as a pure JAX function of the
@@ -682,13 +685,14 @@ def broad_metric_fn(
     through the smoother). ``offline``: :class:`Offline` settings (its ``fusion`` is not used: pass it to ``fn``).
     Estimate k is scored against ``opt_quat[k]`` (sensor to ENU) over the movement samples with finite truth,
     computed in the truth's precision (float64 when x64 is on). ``segment``: checkpointed segment length of the
-    scans (:func:`jaxatt.engine.segment_length`), to bound the memory of a gradient over long trials."""
+    scans (:func:`jaxatt.engine.segment_length`), to bound the memory of a gradient over long trials.
+    ``run_params``: each trial's own values of some params fields (:func:`jaxatt.data.broad.batch_item`)."""
     from .data import broad
 
     spec = resolve_offline(offline) or Offline()
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     padded = broad.pad_trials(trials)
-    item = broad.batch_item(padded, dtype)
+    item = broad.batch_item(padded, dtype, run_params)
     lengths = jnp.asarray(padded.lengths)
     # the cached, jitted smoother with the trials as its arguments: called as it is (not under an outer jit, which
     # would make the trials constants of a new program), a second call with trials of the same shapes compiles

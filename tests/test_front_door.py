@@ -16,7 +16,7 @@ import pytest
 from broad_data import DATA, need_data
 
 import jaxatt
-from jaxatt import engine, frames, montecarlo, so3
+from jaxatt import api, engine, frames, montecarlo, so3
 from jaxatt.data import broad
 from jaxatt.fitting import fitter
 from jaxatt.observers import registry
@@ -729,9 +729,10 @@ def test_a_non_finite_score_or_smoothed_estimate_says_where_it_first_appeared():
 
 
 def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
-    """The data-dependent defaults of a batch (the MEKF's field covariances, VQF's first step) are the median over
-    its trials: a trial far from it (a magnetometer in nT beside ones in uT, another rate) is warned about, since
-    its score then depends on the batch; trials alike, or params the caller gives, are not."""
+    """The data-dependent defaults of a fit's batch (the MEKF's field covariances, VQF's first step: one set of
+    gains for every trial) start from the median over its trials: a trial far from it (a magnetometer in nT beside
+    ones in uT, another rate) is warned about, since its score then depends on the batch; trials alike, or params
+    the caller gives, are not."""
     from jaxatt import api
 
     ut = _tiny_trial()
@@ -749,6 +750,29 @@ def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
             warnings.simplefilter("error")
             api.recording_defaults_for_trials(entry, None, entry.params(), [ut, ut._replace(name="b")])
             api.recording_defaults_for_trials(entry, entry.params(), entry.params(), trials)  # the caller's params
+
+
+def test_a_trials_score_does_not_depend_on_the_trials_beside_it():
+    """broad_score gives each trial its own data-dependent defaults (the MEKF's field covariances scale with its
+    magnetometer's unit, VQF's ts0 is its first step), as filter does for one recording: a trial scored beside a
+    magnetometer in nT, or beside a trial at another rate, scores as it does alone (they used to share the
+    batch's median)."""
+    ut = _tiny_trial()
+    ut = ut._replace(samples=ut.samples._replace(mag=ut.samples.mag + np.random.default_rng(5).normal(size=(40, 3))))
+    nt = ut._replace(name="in_nT", samples=ut.samples._replace(mag=ut.samples.mag * 1e3))
+    slow = ut._replace(name="slow", samples=ut.samples._replace(t=ut.samples.t * 3), rate_hz=100.0 / 3)
+    for name, beside in (("mekf", [nt, nt._replace(name="b")]), ("vqf", [slow, slow._replace(name="b")])):
+        alone = jaxatt.broad_score(name, None, [ut]).trials[ut.name].total_rmse_deg
+        together = jaxatt.broad_score(name, None, [ut, *beside])
+        assert together.trials[ut.name].total_rmse_deg == pytest.approx(alone, rel=1e-9, abs=1e-12), name
+        other = jaxatt.broad_score(name, None, [beside[0]]).trials[beside[0].name].total_rmse_deg
+        assert together.trials[beside[0].name].total_rmse_deg == pytest.approx(other, rel=1e-9, abs=1e-12), name
+    mekf = registry.get("mekf")
+    p, run_params = api.recording_defaults_per_trial(mekf, None, mekf.params(), [ut, nt])
+    assert set(run_params) == {"r_mag"}
+    np.testing.assert_allclose(run_params["r_mag"][1], run_params["r_mag"][0] * 1e6, rtol=1e-12)
+    assert api.recording_defaults_per_trial(mekf, None, mekf.params(), [ut, ut._replace(name="b")])[1] is None
+    assert api.recording_defaults_per_trial(mekf, mekf.params(), mekf.params(), [ut, nt])[1] is None  # the caller's
 
 
 def _tiny_trial():

@@ -604,22 +604,26 @@ def step_dt(rate_hz, dtype):
     return one / np.asarray(rate_hz, dtype)
 
 
-def batch_item(padded: PaddedTrials, dtype) -> dict:
+def batch_item(padded: PaddedTrials, dtype, run_params: Optional[dict] = None) -> dict:
     """The engine's recorded batch of padded trials: samples (B, T, ...) as given (cast in the scan), a constant
     dt per trial (1 / rate in ``dtype``; (B, T) steps from the timestamps when ``padded.dt`` holds them: then
     scan it with ``engine.Recorded(n_steps, per_step_dt=True)``) and the truth the BROAD reducer scores against:
     ``q`` (B, T, 4) sensor-to-ENU with missing rows replaced by the identity and ``use`` (B, T) = movement & real
-    sample & finite truth (so no NaN enters a scan or a gradient)."""
+    sample & finite truth (so no NaN enters a scan or a gradient). ``run_params``: optional ``{field: (B, ...)}``,
+    each trial's own value of those params fields (:data:`jaxatt.engine.RUN_PARAMS`)."""
     qt = np.asarray(padded.quat_true, np.float64)
     finite = np.all(np.isfinite(qt), axis=-1)
     qt = np.where(finite[..., None], qt, np.array([1.0, 0.0, 0.0, 0.0]))
     use = padded.movement & padded.mask & finite
     hi = jnp.result_type(float)
-    return {
+    item = {
         "samples": jax.tree_util.tree_map(jnp.asarray, padded.samples),
         "dt": jnp.asarray(step_dt(padded.rate_hz, dtype) if padded.dt is None else np.asarray(padded.dt, dtype)),
         "truth": {"q": jnp.asarray(qt, hi), "use": jnp.asarray(use)},
     }
+    if run_params:
+        item[engine.RUN_PARAMS] = {k: jnp.asarray(v) for k, v in run_params.items()}
+    return item
 
 
 def _sq_errors(q_est, q_true):
@@ -661,12 +665,14 @@ def metric_batch(
     dtype=None,
     step_remat: bool = False,
     checkpoint=None,
+    run_params: Optional[dict] = None,
 ):
     """(``fn(params, item) -> {metric: (B,) RMSE deg}``, item): the BROAD metric of ``observer`` over a batch item
     of padded trials (rows may be selected: ``item[i]`` for a minibatch), and the item of ``trials``. Pure JAX in
     the params. For gradients: ``checkpoint`` ("auto", a segment length in steps, None: off;
     :func:`jaxatt.engine.segment_length`) stores one state per segment and recomputes each segment in the reverse
-    pass; ``step_remat`` rematerialises each step as well (least memory, slowest)."""
+    pass; ``step_remat`` rematerialises each step as well (least memory, slowest). ``run_params``: each trial's
+    own values of some params fields (:func:`batch_item`)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     padded = pad_trials(trials)
     n_steps = int(padded.samples.t.shape[1]) - 1
@@ -679,7 +685,7 @@ def metric_batch(
         segment=engine.segment_length(n_steps, checkpoint),
         step_remat=step_remat,
     )
-    return (lambda params, item: fn(None, params, item).summary), batch_item(padded, dtype)
+    return (lambda params, item: fn(None, params, item).summary), batch_item(padded, dtype, run_params)
 
 
 def metric_fn(
@@ -690,16 +696,25 @@ def metric_fn(
     dtype=None,
     step_remat: bool = False,
     checkpoint=None,
+    run_params: Optional[dict] = None,
 ):
     """``fn(params) -> {metric: (B,) RMSE deg}``: the BROAD metric of ``observer`` on ``trials`` as a pure JAX
     function of the params (jit it, vmap it over a grid of gains, differentiate it), all trials in one scan
-    (``checkpoint``, ``step_remat``: :func:`metric_batch`)."""
-    fn, item = metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint)
+    (``checkpoint``, ``step_remat``, ``run_params``: :func:`metric_batch`)."""
+    fn, item = metric_batch(
+        observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint, run_params=run_params
+    )
     return lambda params: fn(params, item)
 
 
 def score(
-    observer: Observer, params, trials: Sequence[Trial], *, hold: str = "next", dtype=None
+    observer: Observer,
+    params,
+    trials: Sequence[Trial],
+    *,
+    hold: str = "next",
+    dtype=None,
+    run_params: Optional[dict] = None,
 ) -> Dict[str, Dict[str, float]]:
     """BROAD metric of ``observer`` on each trial: {trial name: {metric: RMSE deg}}, all trials in one vmapped scan.
 
@@ -707,7 +722,8 @@ def score(
     :mod:`jaxatt.engine`) must be sensor-to-ENU (BROAD's frame) and is scored against ``opt_quat[k]``. ``hold``:
     the input of each step ("next": sample k updates the estimate to t_k, as ahrs, VQF and BROAD's filters do).
     ``dtype``: the filter's arithmetic (default jax's default float); the metric is computed in float64 when x64
-    is enabled.
+    is enabled. ``run_params``: each trial's own values of some params fields, ``{field: (B, ...)}``
+    (:func:`jaxatt.api.recording_defaults_per_trial`).
     """
-    summary = jax.device_get(metric_fn(observer, trials, hold=hold, dtype=dtype)(params))
+    summary = jax.device_get(metric_fn(observer, trials, hold=hold, dtype=dtype, run_params=run_params)(params))
     return {tr.name: {m: float(summary[m][i]) for m in METRICS} for i, tr in enumerate(trials)}
