@@ -78,9 +78,9 @@ def _time(t) -> np.ndarray:
     t = np.asarray(t, float)
     if t.ndim != 1 or t.size < 2:
         raise ValueError(f"t must be a 1-D array of at least two sample times, got shape {t.shape}")
-    d = np.diff(t)
-    if not np.all(np.isfinite(t)) or np.any(d <= 0):
-        raise ValueError("sample times t must be finite and strictly increasing")
+    from .data.logs import check_timestamps
+
+    check_timestamps(t, "t")
     return t
 
 

@@ -276,7 +276,10 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
             if a is not None and not _valid_rows(a).any():  # a zero row marks a missing reading, as NaN does
                 notes.append(f"{name} has no present reading (every row NaN or all zero): the filter runs without it")
         g = np.nanmax(np.abs(gyr)) if np.isfinite(gyr).any() else 0.0
-        ratio = gyro_rotation_ratio(gyr, acc, mag, ts)
+        d = np.diff(ts)
+        step = float(np.median(d))
+        time_suspect = step >= 1.0  # the gyro's integral is then off by the time unit, not by the gyro's
+        ratio = None if time_suspect else gyro_rotation_ratio(gyr, acc, mag, ts)
         if g > 35.0:
             notes.append(
                 f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s "
@@ -295,10 +298,23 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
                     f"the median |acc| is {acc_norm:.3g}: is it in g? jaxatt expects m/s^2 (9.81 at rest; "
                     f"acc_unit='g' in {api}, --acc-unit g in {cli}, converts it)"
                 )
-        d = np.diff(ts)
-        step = float(np.median(d))
-        if step > 1.0:
+            elif not 4.0 < acc_norm < 30.0:
+                unit = "mg (divide by 1000 and give acc_unit='g')" if 500 < acc_norm < 2000 else "raw counts"
+                notes.append(
+                    f"the median |acc| is {acc_norm:.4g}, far from 9.81 m/s^2 (gravity, what an accelerometer "
+                    f"measures at rest): is it in {unit}? jaxatt expects m/s^2"
+                )
+        for name, a in (("gyr", gyr), ("acc", acc)):
+            at = _saturated(a)
+            if at:
+                notes.append(
+                    f"{name} stays at exactly {at[1]:.6g} in {at[0]} samples: is the sensor saturated (clipped at "
+                    "its range)? the estimate drifts while it is"
+                )
+        if step >= 1.0:
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
+            if step == 1.0 and not from_dt and np.all(ts == np.round(ts)):
+                unit += " (or is t a sample counter?)"
             if from_dt:  # the user's own sample period, not timestamps
                 notes.append(
                     f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s "
@@ -318,6 +334,30 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
                 f"{d[k]:.4g} s after t = {ts[k]:.6g} s (sample {k}): the gyro is integrated across each gap"
             )
     return notes
+
+
+def _saturated(a) -> Optional[tuple]:
+    """(count, value) when some axis of a noisy ``a`` (T, 3) sits at exactly its largest |value| in at least 10
+    samples and 0.1 % of them, but under half (a clipped sensor: the genuine peaks of a noisy signal rarely repeat
+    one reading), else None. Noisy: most of the other samples differ from the one before (noise-free simulated
+    data holds constant stretches; a constant signal is not clipped)."""
+    if a is None:
+        return None
+    a = np.asarray(a, float)
+    with np.errstate(invalid="ignore"):
+        for axis in range(a.shape[-1]):
+            x = np.abs(a[:, axis])
+            x = x[np.isfinite(x)]
+            if x.size < 3 or not x.max() > 0:
+                continue
+            top = x == x.max()
+            count = int(top.sum())
+            if not max(10, 1e-3 * x.size) <= count < 0.5 * x.size:
+                continue
+            others = ~top[1:] & ~top[:-1]
+            if np.mean(np.diff(x)[others] != 0) > 0.5:
+                return count, float(x.max())
+    return None
 
 
 def _times(t, dt, n: int):
@@ -344,11 +384,9 @@ def _times(t, dt, n: int):
             ) from None
         if t.shape != (n,):
             raise ValueError(f"t must have shape ({n},) like gyr, got {t.shape}")
-        d = np.diff(t)
-        if not np.all(np.isfinite(t)) or np.any(d <= 0):
-            from .data.logs import narrow_timestamps_hint
+        from .data.logs import check_timestamps
 
-            raise ValueError("t must be finite and strictly increasing (s)" + narrow_timestamps_hint(t_dtype, t))
+        check_timestamps(t, "t", t_dtype)
         return t, True
     try:
         if isinstance(dt, (bool, np.bool_, str, bytes)):

@@ -248,9 +248,10 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
         validate(params)
     steps: Union[np.ndarray, float]
     if dt is None:
+        from .data.logs import check_timestamps
+
+        check_timestamps(samples.t, "samples.t")
         steps = np.diff(np.asarray(samples.t, float))
-        if not np.all(np.isfinite(steps)) or np.any(steps <= 0):
-            raise ValueError("timestamps must be finite and strictly increasing")
     else:
         steps = check_dt(dt)
     try:

@@ -552,10 +552,13 @@ def _synthetic_trial(name="01_x", n=50, rate=100.0):
         (lambda tr: [tr._replace(samples=tr.samples._replace(acc=None))], r"samples.acc must have shape"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(t=None))], r"samples.t must have shape \(N,\) = \(50,\)"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(t=tr.samples.t[:10]))], r"samples.t must have shape"),
-        (lambda tr: [tr._replace(samples=tr.samples._replace(t=tr.samples.t * np.nan))], r"samples.t\[0\] is not"),
+        (
+            lambda tr: [tr._replace(samples=tr.samples._replace(t=tr.samples.t * np.nan))],
+            r"samples.t must be finite \(s\): samples.t\[0\] is nan",
+        ),
         (
             lambda tr: [tr._replace(samples=tr.samples._replace(t=np.r_[tr.samples.t[:5], tr.samples.t[4:-1]]))],
-            r"samples.t must be strictly increasing; t\[4\] = 0.04 >= t\[5\] = 0.04",
+            r"samples.t must be strictly increasing \(s\): samples.t\[5\] = 0.04 after samples.t\[4\] = 0.04",
         ),
         (lambda tr: [tr._replace(samples=tr.samples._replace(gyr=tr.samples.gyr + np.inf))], r"gyr contains \+-inf"),
         (lambda tr: [tr._replace(samples=tr.samples._replace(gyr=tr.samples.gyr * np.nan))], r"gyr has no finite"),

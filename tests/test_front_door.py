@@ -800,6 +800,17 @@ def _tiny_trial():
             {"t": lambda t: np.where(t > 0.3, t + 100.0, t)},
             r"1 sample intervals are longer than 10x .*, the longest 100 s after t = 0.3 s \(sample 30\)",
         ),
+        (
+            {"t": lambda t: np.arange(len(t), dtype=float)},
+            r"interval is 1 s: are the timestamps in ms \(or is t a "
+            r"sample counter\?\)",
+        ),  # a step of exactly 1 (1 kHz in ms) was not warned about
+        ({"acc": lambda a: a / 9.81 * 1000}, r"median \|acc\| is 1000, far from 9.81 .*is it in mg"),
+        ({"acc": lambda a: a * 100}, r"median \|acc\| is 981, far from 9.81 .*is it in mg"),
+        (
+            {"gyr": lambda g: np.clip(g + np.sin(np.arange(len(g)) * 0.9)[:, None] * [2.0, 0, 0], -1.5, 1.5)},
+            r"gyr stays at exactly 1.5 in 2\d samples: is the sensor saturated",
+        ),
     ],
 )
 def test_data_in_the_wrong_units_is_warned_about(change, warning):
@@ -1596,3 +1607,19 @@ def test_a_fit_that_stops_on_non_finite_losses_warns():
     with pytest.warns(fitter.NonFiniteFit, match="stopped on a non-finite loss"):
         res = jaxatt.fit(Observer(my_init, late_nan_step, "late"), MY_PARAMS, [trial], steps=3)
     assert res.status == "non-finite"
+
+
+def test_bad_timestamps_are_refused_naming_the_row():
+    """Timestamps given to filter (and every loader, through data.logs.check_timestamps) name the first bad row;
+    stamps rounded coarser than the sample period (0.01 s at 285 Hz) say so and point to dt."""
+    n = 60
+    gyr, acc, mag = np.zeros((n, 3)), np.tile([0, 0, 9.81], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    t = np.arange(n) * 0.01
+    for bad, match in (
+        (np.r_[t[:3], t[2:-1]], r"^t must be strictly increasing \(s\): t\[3\] = 0.02 after t\[2\] = 0.02$"),
+        (np.where(np.arange(n) == 7, np.nan, t), r"^t must be finite \(s\): t\[7\] is nan$"),
+        (np.round(np.arange(n) / 285.0, 2), r"steps repeat a timestamp .*coarser than the sample period\? give the "
+         r"sample period \(dt\) instead"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            jaxatt.filter(MY_OBSERVER, gyr, acc, mag, t=bad, params=MY_PARAMS)

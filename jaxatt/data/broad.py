@@ -44,7 +44,7 @@ import numpy as np
 
 from .. import engine
 from ..types import ImuSample, Observer
-from .logs import non_unit_row
+from .logs import check_timestamps, non_unit_row
 
 __all__ = [
     "Trial",
@@ -281,14 +281,7 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
         if t is None or t.shape != (n,):
             got = "None" if t is None else str(list(t.shape))
             raise ValueError(f"{where}: samples.t must have shape (N,) = ({n},) like gyr, seconds; got {got}")
-        if not np.all(np.isfinite(t)):
-            raise ValueError(f"{where}: samples.t[{int(np.argmin(np.isfinite(t)))}] is not finite")
-        back = np.flatnonzero(np.diff(t) <= 0)
-        if back.size:
-            k = int(back[0])
-            raise ValueError(
-                f"{where}: samples.t must be strictly increasing; t[{k}] = {t[k]:.9g} >= t[{k + 1}] = {t[k + 1]:.9g}"
-            )
+        check_timestamps(t, "samples.t", where=f"{where}: ")
         step = float(np.median(np.diff(t)))
         if not abs(step * rate - 1.0) <= 0.01:
             raise ValueError(f"{where}: rate_hz = {rate:g} Hz but samples.t steps by {step:.6g} s ({1 / step:.6g} Hz)")

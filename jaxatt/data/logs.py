@@ -114,6 +114,33 @@ def narrow_timestamps_hint(dtype, t: np.ndarray) -> str:
     )
 
 
+def check_timestamps(t, name: str = "t", dtype=None, where: str = "") -> None:
+    """ValueError (one line) unless the timestamps ``t`` ((N,), s) are finite and strictly increasing, naming the
+    first bad row of ``name``; ``where`` starts the message (e.g. "log walk.csv: "), ``dtype`` is the timestamps'
+    type as given (a float32 hint). Every boundary that takes timestamps checks them here."""
+    what = name
+    t = np.asarray(t, np.float64)
+    bad = ~np.isfinite(t)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"{where}{what} must be finite (s): {what}[{k}] is {float(t[k])}")
+    d = np.diff(t)
+    if not np.any(d <= 0):
+        return
+    k = int(np.argmax(d <= 0))
+    hint = narrow_timestamps_hint(dtype, t)
+    if not hint and d[k] == 0 and np.mean(d == 0) > 0.05:  # many repeats: stamps coarser than the sample period
+        step = float(np.median(d[d > 0])) if np.any(d > 0) else float("nan")
+        hint = (
+            f"; {int(np.sum(d == 0))} of {d.size} steps repeat a timestamp (they advance by {step:.3g} s): stamps "
+            "rounded coarser than the sample period? give the sample period (dt) instead"
+        )
+    raise ValueError(
+        f"{where}{what} must be strictly increasing (s): {what}[{k + 1}] = {t[k + 1]:.9g} after {what}[{k}] = "
+        f"{t[k]:.9g}" + hint
+    )
+
+
 def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tuple[ImuSample, Optional[np.ndarray]]:
     """Validate a log and return it as float64 numpy arrays.
 
@@ -146,16 +173,7 @@ def check_log(samples: ImuSample, quat_true=None, *, source: str = "log") -> Tup
     n = t.shape[0]
     if n < 1:
         raise ValueError(f"{source}: the log is empty")
-    if not np.all(np.isfinite(t)):
-        raise ValueError(f"{source}: t must be finite (first bad index {int(np.argmin(np.isfinite(t)))})")
-    dt = np.diff(t)
-    if np.any(dt <= 0):
-        k = int(np.argmax(dt <= 0))
-        a, b = float(t[k]), float(t[k + 1])
-        raise ValueError(
-            f"{source}: t must be strictly increasing; t[{k}] = {a!r} >= t[{k + 1}] = {b!r}"
-            + narrow_timestamps_hint(t_dtype, t)
-        )
+    check_timestamps(t, "t", t_dtype, f"{source}: ")
     out = {"t": t}
     for name in ("gyr", "acc", "mag"):
         v = getattr(samples, name)
