@@ -1323,6 +1323,7 @@ def monte_carlo(
             hold,
             dt_,
             mc.check_count("trace_every", trace_every),
+            programs=_programs(obs, p, scn, mc.check_dt(dt), dt_),
         )
         if resume:
             previous = _saved_runs(out, spec, name, runs)
@@ -1372,7 +1373,43 @@ def monte_carlo(
     return res
 
 
-def _runs_spec(name, params, scenario, duration, dt, seed, window_start, hold, dtype, trace_every) -> str:
+def program_fingerprint(fn, *args) -> str:
+    """A short hash of what ``fn(*args)`` computes: its jaxpr (the traced program, so the code of every function
+    it calls and the numbers it closes over, whatever their names) and the values of its constants. Two calls that
+    compute the same agree; an edited function, or another JAX version, gives another."""
+    import hashlib
+    import re
+
+    closed = jax.make_jaxpr(fn)(*args)
+    h = hashlib.sha256(re.sub(r" at 0x[0-9a-fA-F]+", "", str(closed.jaxpr)).encode())
+    for c in closed.consts:
+        c = np.asarray(c)
+        h.update(f"{c.dtype}{c.shape}".encode() + c.tobytes())
+    return h.hexdigest()[:16]
+
+
+def _programs(obs, params, scenario, dt: float, dtype) -> dict:
+    """Fingerprints (:func:`program_fingerprint`) of the scenario's first simulated step (truth and sensors) and
+    of the observer's init and step on its samples: a resumed Monte Carlo refuses runs of edited functions (a
+    user's step or trajectory of the same name)."""
+    noise = jnp.zeros((scenario.n_channels,), dtype)
+
+    def first_samples(scn):
+        r1 = scn.propagate(scn.r0, 0.0, dt)
+        return scn.sample(scn.truth_at(scn.r0, 0.0), noise, dt), scn.sample(scn.truth_at(r1, dt), noise, dt)
+
+    s0, s1 = jax.eval_shape(first_samples, scenario)
+    p, step = engine.cast_floats(params, dtype), jnp.asarray(dt, dtype)
+    s0, s1 = (jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, dtype), s) for s in (s0, s1))
+    return {
+        "scenario": program_fingerprint(first_samples, scenario),
+        "observer": program_fingerprint(lambda p, a, b: obs.step(p, obs.init(p, a), b, step), p, s0, s1),
+    }
+
+
+def _runs_spec(
+    name, params, scenario, duration, dt, seed, window_start, hold, dtype, trace_every, programs=None
+) -> str:
     """What must match for the runs saved by :func:`monte_carlo` (``out``) to be continued (runs aside)."""
     import json
     import re
@@ -1396,6 +1433,7 @@ def _runs_spec(name, params, scenario, duration, dt, seed, window_start, hold, d
         "hold": hold,
         "dtype": str(np.dtype(dtype)),
         "trace_every": int(trace_every),
+        "programs": programs,
     }
     return json.dumps(spec, sort_keys=True, default=str)
 
@@ -1411,9 +1449,20 @@ def _saved_runs(out, spec: str, name: str, runs: int):
     if not saved:
         return None
     if saved_spec != spec or list(saved) != [name]:
+        import json
+
+        try:
+            was, now = json.loads(saved_spec), json.loads(spec)
+            differ = [k for k in now if k != "programs" and was.get(k) != now[k]] + [
+                f"the {k}'s code (an edited function, or another jax version)"
+                for k in (now.get("programs") or {})
+                if (was.get("programs") or {}).get(k) != now["programs"][k]
+            ]
+        except (ValueError, TypeError, AttributeError):
+            differ = []
         raise ValueError(
-            f"resume: {out} holds runs of another call (observer, params, scenario, duration, dt, seed, window, "
-            "hold, precision or trace_every differ); call with the same arguments, or pass overwrite=True instead"
+            f"resume: {out} holds runs of another call ({', '.join(differ) or 'its arguments'} differ); call "
+            "with the same arguments, or pass overwrite=True instead"
         )
     res = saved[name]
     idx = np.asarray(res.run_indices)

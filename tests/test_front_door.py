@@ -1149,7 +1149,7 @@ def test_a_monte_carlo_saved_to_a_file_is_resumed_from_it(tmp_path):
     np.testing.assert_array_equal(more.per_run["mean_angle_error_deg"][:4], full.per_run["mean_angle_error_deg"])
     for call, match in (
         (dict(runs=6, **kw, out=out), r"out .*mc\.npz: exists; pass resume=True .* or overwrite=True"),
-        (dict(runs=6, **{**kw, "seed": 2}, out=out, resume=True), r"holds runs of another call"),
+        (dict(runs=6, **{**kw, "seed": 2}, out=out, resume=True), r"holds runs of another call \(seed differ\)"),
         (dict(runs=3, **kw, out=out, resume=True), r"holds runs up to run 5: ask for runs >= 6"),
         (dict(runs=6, **kw, out=out, resume=True, overwrite=True), r"pass one"),
         (dict(runs=6, **kw, resume=True), r"resume=True needs out"),
@@ -1157,6 +1157,13 @@ def test_a_monte_carlo_saved_to_a_file_is_resumed_from_it(tmp_path):
     ):
         with pytest.raises(ValueError, match=match):
             jaxatt.monte_carlo("mahony", **call)
+    # your own observer is known by what it computes, not by its name: an edited step of the same name is refused
+    own = tmp_path / "own.npz"
+    jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, runs=2, **kw, out=own)
+    twice_the_gain = Observer(my_init, lambda p, st, s, dt: my_step(p._replace(kp=2 * p.kp), st, s, dt), "my_mahony")
+    with pytest.raises(ValueError, match=r"another call \(the observer's code \(an edited function"):
+        jaxatt.monte_carlo(twice_the_gain, MY_PARAMS, runs=4, **kw, out=own, resume=True)
+    assert jaxatt.monte_carlo(MY_OBSERVER, MY_PARAMS, runs=3, **kw, out=own, resume=True).complete
     (tmp_path / "junk.npz").write_text("not an archive")
     with pytest.raises(ValueError, match="junk.npz is not a runs file of jaxatt"):
         jaxatt.monte_carlo("mahony", runs=2, **kw, out=tmp_path / "junk.npz", resume=True)
