@@ -34,6 +34,7 @@ __all__ = [
     "simulate",
     "simulate_log",
     "monte_carlo",
+    "metrics_fn",
     "MonteCarloResult",
     "save_runs",
     "load_runs",
@@ -445,6 +446,47 @@ def _simulation(
     return n_steps, engine.compiled(
         observer, source, reducer, mesh, hold=hold, obs_dtype=obs_dtype, progress=progress, keep_state=keep_state
     )
+
+
+def metrics_fn(
+    observer: Observer,
+    *,
+    duration: float,
+    dt: float,
+    errors_fn: ErrorsFn,
+    window_start: float = 0.0,
+    hold: str = "zoh",
+    dtype=None,
+    windows=(),
+    init_params: Optional[Callable] = None,
+):
+    """``fn(scenario, params, keys) -> {metric: (B,)}``: the per-run metrics of :func:`monte_carlo` (the same
+    program, arguments as there) as a pure JAX function, to ``jax.vmap`` over a grid of gains or scenarios,
+    ``jax.jit`` or differentiate. ``keys``: (B, 2) PRNG keys, :func:`run_keys` (run k of seed s:
+    ``run_keys(s, [k])``, so a run's numbers do not depend on its batch). A grid of gains, every gain on the same
+    runs: ``jax.vmap(fn, in_axes=(None, 0, None))(scenario, stacked_params, keys)``. The metrics are those of
+    ``MonteCarloResult.per_run`` (degrees where named ``_deg``), plus ``first_nonfinite_t_s`` (s; inf for a run whose
+    estimate stayed finite). Nothing is checked per call beyond what JAX checks: the checks of
+    :func:`monte_carlo` run once, here, on the observer and the settings."""
+    check_observer(observer)
+    _, fn = _simulation(
+        observer,
+        duration=duration,
+        dt=dt,
+        errors_fn=errors_fn,
+        window_start=window_start,
+        hold=hold,
+        trace_every=0,
+        trace_fn=None,
+        dtype=dtype,
+        windows=windows,
+        init_params=init_params,
+    )
+
+    def metrics(scenario, params, keys):
+        return fn(scenario, params, keys).summary
+
+    return metrics
 
 
 def simulate(

@@ -211,3 +211,21 @@ def test_microbatch_groups_give_the_same_runs_records_states_and_gradient():
     gb = jax.grad(lambda q: jnp.sum(split(None, q, items).summary["ss"] * gains))(p)
     assert float(gb.gain) == pytest.approx(float(ga.gain), rel=1e-13) and float(ga.gain) != 0.0
     assert engine.default_microbatch() == (engine.CPU_MICROBATCH if jax.default_backend() == "cpu" else 0)
+
+
+def test_a_grid_of_gains_is_one_vmap_of_metrics_fn_and_equals_monte_carlo_per_gain():
+    """montecarlo.metrics_fn is monte_carlo's program as a pure function: vmapped over a grid of gains (every gain
+    on the same runs) it gives, per gain, the per-run metrics of monte_carlo with that gain."""
+    from jaxatt import montecarlo, studies
+
+    s = studies.get("complementary").setup(duration=2.0)
+    kw = dict(duration=2.0, dt=s.dt, errors_fn=s.errors_fn)
+    fn = montecarlo.metrics_fn(s.observer, **kw)
+    gains = jnp.asarray([0.1, 0.3, 1.0])
+    grid = jax.vmap(lambda k_i: s.params._replace(k_i=k_i))(gains)
+    got = jax.jit(jax.vmap(fn, in_axes=(None, 0, None)))(s.scenario, grid, montecarlo.run_keys(3, range(2)))
+    for i, k_i in enumerate(gains):
+        one = montecarlo.monte_carlo(s.scenario, s.observer, s.params._replace(k_i=k_i), runs=2, seed=3, **kw)
+        for k, v in one.per_run.items():
+            np.testing.assert_allclose(got[k][i], v, rtol=1e-12, atol=1e-14, err_msg=k)
+    assert not np.allclose(got["mean_angle_error_deg"][0], got["mean_angle_error_deg"][2])  # the gain matters
