@@ -162,6 +162,51 @@ def check_scenario(scenario) -> None:
             "scenario must be a simulated scenario (jaxatt.api.ahrs_scenario(...), a study's setup().scenario), got "
             f"{type(scenario).__name__} (it lacks {', '.join(missing)})"
         )
+    _check_scenario_values(scenario)
+
+
+def _is_nonnegative_field(name: str) -> bool:
+    """A noise level or scale by its name (``gyro_arw``, ``vec_noise_std``, ``noise_scale``, ``burst_scale``, ...)."""
+    return "std" in name or name.endswith(("_arw", "scale"))
+
+
+def _check_scenario_values(scenario) -> None:
+    """ValueError (one line, naming the field) unless a scenario built by hand holds finite numbers, ``r0`` a
+    rotation (3, 3), noise levels and scales >= 0, and its first simulated step (truth and sensors) runs (checked
+    on shapes). Fields that are being traced (a vmap over scenarios) are not checked."""
+    fields = getattr(scenario, "_fields", ())
+    for name in fields:
+        v = getattr(scenario, name)
+        if callable(v) or hasattr(v, "rate") or isinstance(v, jax.core.Tracer):
+            continue
+        try:
+            a = np.asarray(v, float)
+        except (TypeError, ValueError):
+            continue  # not numbers: the scenario's own business
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"scenario.{name} must be finite, got {shown(v)}")
+        if _is_nonnegative_field(name) and np.any(a < 0):
+            raise ValueError(f"scenario.{name} must be >= 0 (a noise level or scale), got {shown(v)}")
+    r0 = getattr(scenario, "r0", None)
+    if r0 is not None and not isinstance(r0, jax.core.Tracer):
+        r = np.asarray(r0, float)
+        if r.shape != (3, 3) or not (np.allclose(r @ r.T, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0):
+            raise ValueError(f"scenario.r0 must be a rotation matrix (3, 3) (R R^T = I, det +1), got {shown(r0)}")
+    dt = 0.01
+    noise = jnp.zeros((scenario.n_channels,))
+
+    def first_step(scn):
+        r1 = scn.propagate(scn.r0, 0.0, dt)
+        return scn.sample(scn.truth_at(r1, dt), noise, dt)
+
+    try:
+        jax.eval_shape(first_step, scenario)
+    except Exception as e:  # noqa: BLE001 - the scenario's code failed: one line, the traceback as __cause__
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"scenario {type(scenario).__name__}: its first simulated step failed (check the shapes of its fields "
+            f"and of rates.rate(t), (3,) rad/s): {type(e).__name__}: {first}"
+        ) from e
 
 
 def _pick_out(t, truth, out):

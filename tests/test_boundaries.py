@@ -524,7 +524,21 @@ API_BAD = [
         ),
         r"observer must be a jaxatt.Observer",
     ),
+    # a scenario built by hand: a NaN noise level (every magnetometer sample NaN: silently "no magnetometer"), a
+    # start that is not a rotation, a negative noise level, a field of the wrong shape (a JAX traceback)
+    (lambda g, a, m: montecarlo.simulate_log(_ges(vec_noise_std=np.nan), **SHORT), r"vec_noise_std must be finite"),
+    (lambda g, a, m: montecarlo.simulate_log(_ges(r0=2 * np.eye(3)), **SHORT), r"r0 must be a rotation matrix"),
+    (lambda g, a, m: montecarlo.simulate_log(_ges(gyro_arw=-1.0), **SHORT), r"gyro_arw must be >= 0"),
+    (
+        lambda g, a, m: montecarlo.simulate_log(_ges(ref_nav=np.ones(2)), **SHORT),
+        r"scenario ImuScenario: its first simulated step failed \(check the shapes",
+    ),
 ]
+SHORT = dict(duration=0.1, dt=0.01)
+
+
+def _ges(**change):
+    return jaxatt.studies.get("batista-ges").setup(duration=1.0).scenario._replace(**change)
 
 
 def _madgwick():
