@@ -1448,20 +1448,16 @@ def _saved_runs(out, spec: str, name: str, runs: int):
     saved_spec, saved = mc.load_runs(out, "resume", again="pass overwrite=True instead of resume to replace it")
     if not saved:
         return None
-    if saved_spec != spec or list(saved) != [name]:
-        import json
-
-        try:
-            was, now = json.loads(saved_spec), json.loads(spec)
-            differ = [k for k in now if k != "programs" and was.get(k) != now[k]] + [
-                f"the {k}'s code (an edited function, or another jax version)"
-                for k in (now.get("programs") or {})
-                if (was.get("programs") or {}).get(k) != now["programs"][k]
-            ]
-        except (ValueError, TypeError, AttributeError):
-            differ = []
+    differ = mc.spec_differences(saved_spec, spec, {"programs": mc.ANY})  # files of 0.2.0 hold no programs
+    if differ or list(saved) != [name]:
+        said = [
+            f"the {k.split('.', 1)[1]}'s code (an edited function, or another jax version)"
+            if k.startswith("programs.")
+            else k
+            for k in differ
+        ]
         raise ValueError(
-            f"resume: {out} holds runs of another call ({', '.join(differ) or 'its arguments'} differ); call "
+            f"resume: {out} holds runs of another call ({', '.join(said) or 'the observer'} differ); call "
             "with the same arguments, or pass overwrite=True instead"
         )
     res = saved[name]

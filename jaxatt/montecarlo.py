@@ -38,6 +38,7 @@ __all__ = [
     "MonteCarloResult",
     "save_runs",
     "load_runs",
+    "spec_differences",
     "load_result",
     "check_dt",
     "check_observer",
@@ -824,6 +825,45 @@ def monte_carlo(
             raise
         return result(False)
     return result(True)
+
+
+#: In :func:`spec_differences`' ``assumed``: a key an earlier version's spec lacks matches whatever its value now.
+ANY = object()
+
+
+def spec_differences(saved: str, now: str, assumed: Optional[Mapping] = None) -> list:
+    """The keys (``config.name`` inside a nested dict) in which the spec of saved runs differs from the spec of
+    this call (both JSON strings, :func:`save_runs`); [] when the runs can be continued. A key the saved spec
+    lacks was added by a later version of jaxatt: it matches when this call's value is the one ``assumed`` for it
+    (the value the earlier version used, :data:`ANY` for any, a dict for a nested dict such as a Config's
+    defaults), so runs saved before an upgrade are resumed after it."""
+    import json
+
+    try:
+        was, cur = json.loads(saved), json.loads(now)
+    except (TypeError, ValueError):
+        return ["the spec"] if saved != now else []
+
+    def walk(was, cur, assumed, prefix):
+        if not (isinstance(was, dict) and isinstance(cur, dict)):
+            return [] if was == cur else [prefix.rstrip(".") or "the spec"]
+        out = []
+        for k in sorted(set(was) | set(cur)):
+            a = (assumed or {}).get(k, None) if isinstance(assumed, dict) else None
+            if k not in was and k in cur:
+                ok = a is ANY or (isinstance(a, dict) and isinstance(cur[k], dict) and not walk(a, cur[k], None, ""))
+                ok = ok or (a is not None and not isinstance(a, dict) and cur[k] == a)
+                if not ok:
+                    out.append(prefix + k)
+            elif k not in cur:
+                out.append(prefix + k)
+            elif isinstance(was[k], dict) and isinstance(cur[k], dict):
+                out += walk(was[k], cur[k], a, prefix + k + ".")
+            elif was[k] != cur[k]:
+                out.append(prefix + k)
+        return out
+
+    return walk(was, cur, assumed or {}, "")
 
 
 def save_runs(path, spec: str, results: Mapping[str, MonteCarloResult]) -> None:

@@ -880,3 +880,37 @@ def test_a_complete_result_survives_an_interrupted_resume_and_a_study_of_several
     assert studies.reproduce(study, runs=2, resume=True, **kw)["complete"]
     resumed = json.loads(out.read_text())
     assert resumed["complete"] and resumed["runs_done"] == 2 and "metrics" not in resumed
+
+
+def test_runs_saved_by_an_earlier_version_are_resumed_after_an_upgrade(tmp_path):
+    """A runs file whose spec lacks a key added since (0.2.0 wrote no trace_every, no config field added later,
+    no program fingerprints) is resumed when this run uses that key's old value: an upgrade mid-study keeps every
+    finished run. A key that does differ is named."""
+    from jaxatt import montecarlo, studies
+
+    study = studies.get("nlio-case1")
+    cfg = study.config(duration=2.0)
+    obs = dict(list(study.observers(cfg).items())[:1])
+    out = tmp_path / "r.json"
+    runs = Path(str(out) + ".runs.npz")
+
+    def run(**kw):
+        return studies.reproduce(study, cfg, runs=2, json_path=str(out), quiet=True, observers=obs, **kw)
+
+    run()
+    spec, saved = montecarlo.load_runs(runs, "test")
+    old = json.loads(spec)
+    del old["trace_every"], old["config"][sorted(old["config"])[0]]  # as an earlier version wrote it
+    montecarlo.save_runs(runs, json.dumps(old, sort_keys=True), saved)
+    out.write_text(out.read_text().replace('"complete": true', '"complete": false'))
+    before = json.loads(out.read_text())["metrics"] if "metrics" in json.loads(out.read_text()) else None
+    assert run(resume=True)["complete"]  # resumed, not refused
+    assert (json.loads(out.read_text()).get("metrics") if before is not None else None) == before
+    old["seed"] = 7  # a key that differs is named
+    montecarlo.save_runs(runs, json.dumps(old, sort_keys=True), saved)
+    with pytest.raises(ValueError, match=r"another set-up \(.*seed.* differ\)"):
+        run(resume=True)
+    assert montecarlo.spec_differences(json.dumps({"a": 1}), json.dumps({"a": 1, "b": 2}), {"b": 3}) == ["b"]
+    assert montecarlo.spec_differences(json.dumps({"c": {"x": 1}}), json.dumps({"c": {"x": 2}})) == ["c.x"]
+    programs = json.dumps({"a": 1, "programs": {"observer": "5e1f"}})  # jaxatt.monte_carlo's files of 0.2.0: none
+    assert montecarlo.spec_differences(json.dumps({"a": 1}), programs, {"programs": montecarlo.ANY}) == []

@@ -507,7 +507,7 @@ def reproduce(
     dtype_name = str(np.dtype(dtype if dtype is not None else jax.numpy.result_type(float)))
     trace_every, trace_fn = study.trace(cfg, bool(plot_path))
     spec = _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every)
-    saved = _read_runs(runs_file(json_path), spec) if resume else {}
+    saved = _read_runs(runs_file(json_path), spec, study, study.trace(cfg, False)[0]) if resume else {}
     if resume:  # per observer: a study interrupted in its third observer holds the first two's runs
         have = ", ".join(f"{k} {len(saved[k].run_indices) if k in saved else 0}/{runs}" for k in obs)
         log(f"resuming: runs already saved in {runs_file(json_path)}: {have}")
@@ -687,16 +687,20 @@ def _runs_spec(study, cfg, runs, seed, dtype_name, obs, trace_every=None) -> str
     )
 
 
-def _read_runs(path, spec: str) -> Dict[str, Any]:
-    """label -> MonteCarloResult of the runs file ``path`` of the same set-up; {} when there is no file."""
-    from ..montecarlo import load_runs
+def _read_runs(path, spec: str, study=None, plain_trace_every=0) -> Dict[str, Any]:
+    """label -> MonteCarloResult of the runs file ``path`` of the same set-up; {} when there is no file. A file
+    of an earlier version, whose spec lacks a key added since, is read when this run uses that key's old value
+    (the traces kept without --plot, ``plain_trace_every``; a config field at its default)."""
+    from ..montecarlo import load_runs, spec_differences
 
     saved_spec, results = load_runs(path, "--resume", again="delete it to start again")
-    if results and saved_spec != spec:
+    assumed = {"trace_every": plain_trace_every, "config": config_dict(study.config()) if study is not None else {}}
+    differ = spec_differences(saved_spec, spec, assumed) if results else []
+    if differ:
+        said = ", ".join("--plot" if k == "trace_every" else k for k in differ)
         raise ValueError(
-            f"--resume: {path} holds runs of another set-up (study, config, runs, seed, precision, gains "
-            "or --plot differ); "
-            "rerun with the same flags, or without --resume to start again"
+            f"--resume: {path} holds runs of another set-up ({said} differ); rerun with the same flags, or without "
+            "--resume to start again"
         )
     return results
 
