@@ -843,11 +843,12 @@ def _tune(args) -> int:
         given = [
             flag for flag, v in (("--train-runs", args.train_runs), ("--val-runs", args.val_runs)) if v is not None
         ]
-        if given:
+        if given:  # 0.2.0 took them (its README's usage line names --train-runs): said, not refused
             two = len(given) > 1
-            raise UserError(
+            warnings.warn(
                 f"{' and '.join(given)} {'do' if two else 'does'} not apply to --objective varfree (the variance-free "
-                f"loss draws no runs; leave {'them' if two else 'it'} out, or use --objective montecarlo)"
+                f"loss draws no runs): ignored; leave {'them' if two else 'it'} out, or use --objective montecarlo",
+                stacklevel=2,
             )
     io.check_output_path(args.out, "--out", suffixes=io.JSON_SUFFIXES)
     _existing_gains_out(args)

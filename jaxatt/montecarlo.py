@@ -831,7 +831,7 @@ def monte_carlo(
 ANY = object()
 
 
-def spec_differences(saved: str, now: str, assumed: Optional[Mapping] = None) -> list:
+def spec_differences(saved: Optional[str], now: str, assumed: Optional[Mapping] = None) -> list:
     """The keys (``config.name`` inside a nested dict) in which the spec of saved runs differs from the spec of
     this call (both JSON strings, :func:`save_runs`); [] when the runs can be continued. A key the saved spec
     lacks was added by a later version of jaxatt: it matches when this call's value is the one ``assumed`` for it

@@ -38,6 +38,10 @@ def test_concepts_example_runs():
     np.testing.assert_allclose(np.abs(np.sum(est32.quat * ns["est"].quat, axis=-1)), 1.0, atol=1e-5)
 
 
+#: 0.1's module names kept as aliases of their 0.2 places (not reference pages of their own).
+OLD_ALIASES = {"jaxatt.experiments", "jaxatt.parametrize"}
+
+
 def test_reference_covers_every_public_module():
     """The API reference pages (docs/reference/*.md, rendered by mkdocstrings) name every public module of jaxatt
     once, the site's nav lists every page and notebook, and every module in the reference exists."""
@@ -47,7 +51,8 @@ def test_reference_covers_every_public_module():
         m.name
         for m in pkgutil.walk_packages(jaxatt.__path__, "jaxatt.")
         if not any(part.startswith("_") for part in m.name.split(".")[1:])
-    }
+    } - OLD_ALIASES
+
     pages = sorted((ROOT / "docs" / "reference").glob("*.md"))
     named = [m for page in pages for m in re.findall(r"^::: (\S+)$", page.read_text(), flags=re.M)]
     assert sorted(named) == sorted(public), (sorted(public - set(named)), sorted(set(named) - public))
@@ -58,3 +63,29 @@ def test_reference_covers_every_public_module():
         assert f"notebooks/{nb.name}" in nav, nb.name
     for md in (ROOT / "docs" / "observers").glob("*.md"):
         assert f"observers/{md.name}" in nav, md.name
+
+
+def test_the_0_1_readmes_python_example_still_runs_through_the_aliases():
+    """Version 0.1's README imported the studies from jaxatt.experiments and the transforms from
+    jaxatt.parametrize: both still import (the same modules as jaxatt.studies / jaxatt.fitting.parametrize), with
+    a DeprecationWarning naming the new place, and the 0.1 example gives the 0.2 numbers."""
+    import importlib
+    import sys
+
+    import pytest
+
+    from jaxatt import montecarlo
+    from jaxatt.fitting import parametrize as new_parametrize
+    from jaxatt.studies import batista_ges
+
+    for name, new in (("jaxatt.experiments", "jaxatt.studies"), ("jaxatt.parametrize", "jaxatt.fitting.parametrize")):
+        sys.modules.pop(name, None)
+        with pytest.warns(DeprecationWarning, match=f"{name} is {new} since 0.2"):
+            old = importlib.import_module(name)
+    assert old.Positive is new_parametrize.Positive
+    from jaxatt.experiments import batista_ges as E  # the 0.1 README's lines
+
+    assert E is batista_ges
+    cfg = E.Config()
+    samples, _ = montecarlo.simulate_log(E.scenario(cfg), duration=0.5, dt=0.01)
+    assert montecarlo.run(E.observer(cfg), E.params(cfg), samples).r.shape == (51, 3, 3)

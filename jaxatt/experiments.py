@@ -1,0 +1,13 @@
+"""``jaxatt.experiments`` of version 0.1 is :mod:`jaxatt.studies` since 0.2 (the same modules: ``Config``,
+``observer(cfg)``, ``params(cfg)``, ``scenario(cfg)``): this alias keeps 0.1 code (``from jaxatt.experiments
+import batista_ges as E``) running, with a DeprecationWarning naming the new place."""
+
+import warnings
+
+from .studies import batista_ges, batista_so3, complementary, nlio  # noqa: F401
+
+warnings.warn(
+    "jaxatt.experiments is jaxatt.studies since 0.2: import from there (from jaxatt.studies import batista_ges)",
+    DeprecationWarning,
+    stacklevel=2,
+)
