@@ -840,7 +840,7 @@ def spec_differences(saved: Optional[str], now: str, assumed: Optional[Mapping] 
     import json
 
     try:
-        was, cur = json.loads(saved), json.loads(now)
+        was, cur = json.loads(saved or "null"), json.loads(now)
     except (TypeError, ValueError):
         return ["the spec"] if saved != now else []
 
