@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import engine, frames
+from . import engine, frames, so3
 from .observers import registry
 from .types import ImuSample, Observer, check_seed, check_window_start
 
@@ -124,22 +124,26 @@ def _starts_from_first_sample(entry) -> bool:
     return entry is not None and (entry.setup is not None or bool(entry.init_reads))
 
 
-def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray]):
+def start_from_valid(entry, acc: Optional[np.ndarray], mag: Optional[np.ndarray], gyr, ts):
     """(acc, mag) for a registered observer that sets its start and references up from the first sample (an
     entry with ``setup``: TRIAD and the field and gravity references; or one whose ``init_reads`` names the
     sensors, e.g. the robust AHRS's TRIAD and field norm and dip): a missing acc / mag reading in row 0 is
-    replaced by that sensor's first present reading (row 0 only feeds ``init`` on hold "next"; other rows stay
-    missing). A sensor with no present reading at all gets a zero row 0 (missing by the same convention, and no
-    NaN in the set-up: its degenerate TRIAD keeps the inclination, the observer's own handling of a dead
-    magnetometer)."""
+    replaced by that sensor's first present reading, carried back to row 0's sensor frame by the gyro
+    (:func:`jaxatt.so3.first_present_at_start`; ``gyr`` (T, 3) rad/s, ``ts`` (T,) s; row 0 only feeds ``init`` on
+    hold "next"; other rows stay missing). A sensor with no present reading at all gets a zero row 0 (missing by
+    the same convention, and no NaN in the set-up: its degenerate TRIAD keeps the inclination, the observer's own
+    handling of a dead magnetometer)."""
     if not _starts_from_first_sample(entry):
         return acc, mag
     out: List[Optional[np.ndarray]] = []
     for a in (acc, mag):
         if a is not None and not _valid_rows(a[:1])[0]:
             ok = _valid_rows(a)
+            j = int(np.argmax(ok)) + 1  # only the rows up to the first present one matter
             a = a.copy()
-            a[0] = a[int(np.argmax(ok))] if ok.any() else 0.0
+            dt = np.diff(np.asarray(ts[:j], np.float64), prepend=0.0)
+            row0 = so3.first_present_at_start(np.asarray(a[:j], np.float64), np.asarray(gyr[:j], np.float64), dt)[0]
+            a[0] = np.asarray(row0) if ok.any() else 0.0
         out.append(a)
     return out[0], out[1]
 
@@ -153,7 +157,7 @@ def trials_start_from_valid(entry, trials: list) -> list:
         s = tr.samples
         acc = None if s.acc is None else np.asarray(s.acc)
         mag = None if s.mag is None else np.asarray(s.mag)
-        acc2, mag2 = start_from_valid(entry, acc, mag)
+        acc2, mag2 = start_from_valid(entry, acc, mag, np.asarray(s.gyr), np.asarray(s.t))
         out.append(tr if acc2 is acc and mag2 is mag else tr._replace(samples=s._replace(acc=acc2, mag=mag2)))
     return out
 
@@ -863,7 +867,8 @@ def filter(
     engine.check_finite_params(p, name)
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
-    acc_a, mag_a = start_from_valid(entry, acc_a, mag_a)
+    if spec is None:  # the smoother sets both passes' starts itself (and knows which were missing)
+        acc_a, mag_a = start_from_valid(entry, acc_a, mag_a, gyr_a, ts)
     # the scan runs over a few more samples (the last one repeated, the extra estimates dropped): recordings of
     # nearby lengths share one compiled program (estimate k of a causal scan depends on samples 0..k only)
     n_run = _run_length(n)
@@ -1064,7 +1069,7 @@ def broad_score(
     dt_ = compute_dtype(*trial_arrays(trials), dtype=dtype, what="trial data")
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
-    trials = trials_start_from_valid(entry, trials)
+    as_given, trials = trials, trials_start_from_valid(entry, trials)  # the smoother sets its starts itself
     p, run_params = recording_defaults_per_trial(entry, params, p, trials)  # each trial its own, as filter does
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
@@ -1098,7 +1103,7 @@ def broad_score(
         heading = ("mag" in entry.needs) if entry is not None else True
         metric = smoothing.broad_metric_fn(
             obs,
-            trials,
+            as_given,
             hold=hold,
             dtype=dt_,
             offline=spec,

@@ -220,16 +220,14 @@ def reverse_indices(n: int, length, hold: str = "next"):
 def _present(a, length):
     """(T,) True where a (T, 3) reading is present within the first ``length`` rows: finite and not all zero (NaN
     or zero rows mark a missing reading, as on the forward pass)."""
-    ok = jnp.all(jnp.isfinite(a), axis=-1) & jnp.any(a != 0, axis=-1)
-    return ok & (jnp.arange(a.shape[0]) < length)
+    return so3.present(a) & (jnp.arange(a.shape[0]) < length)
 
 
-def _start_from_present(a, length):
-    """``a`` (T, 3) with a missing row 0 replaced by its first present reading (zeros when none is present): the
-    start of an observer that sets itself up from its first sample (TRIAD, field references) never reads NaN."""
-    ok = _present(a, length)
-    first = jnp.where(jnp.any(ok), a[jnp.argmax(ok)], jnp.zeros_like(a[0]))
-    return a.at[0].set(jnp.where(ok[0], a[0], first))
+def _start_from_present(a, gyr, dt, length):
+    """``a`` (T, 3) with a missing row 0 replaced by its first present reading carried back to row 0 by the gyro
+    (:func:`jaxatt.so3.first_present_at_start`; zeros when none is present): the start of an observer that sets
+    itself up from its first sample (TRIAD, field references) never reads NaN, nor a reading of another attitude."""
+    return so3.first_present_at_start(a, gyr, dt, length)
 
 
 def reverse_item(item: dict, lengths, hold: str = "next", bias=None, start_from_present: bool = False) -> dict:
@@ -261,7 +259,7 @@ def reverse_item(item: dict, lengths, hold: str = "next", bias=None, start_from_
             t = s.t
         acc, mag = take(s.acc), take(s.mag)
         if start_from_present:
-            acc, mag = (None if a is None else _start_from_present(a, length) for a in (acc, mag))
+            acc, mag = (None if a is None else _start_from_present(a, gyr, dt, length) for a in (acc, mag))
         return ImuSample(t, gyr, acc, mag), dt
 
     bs = None if bias is None else jnp.asarray(bias)
@@ -450,6 +448,11 @@ class Passes(NamedTuple):
         mag_present: (B,) whether each recording has a magnetometer reading (a present one: finite, not all zero),
             or None for recordings without a mag field: without one neither pass has an absolute heading, and
             :func:`fuse_passes` fuses that recording in inclination only.
+        start_age: (B, 2, 2) s, for each pass (forward, backward) and channel (acc: inclination, mag: heading),
+            how far in time the reading its start was set from, carried back by the gyro (:func:`_start_from_present`:
+            as good as coasting that long), lies from its first sample (0 when that sample has it), or None.
+        no_reading_until: (B, 2, 2) s, the same time for observers that are not set up from a carried reading but
+            wait for one (VQF's heading): the pass has no weight in that channel before it (:data:`UNINFORMED_S`).
     """
 
     forward: Any
@@ -460,6 +463,8 @@ class Passes(NamedTuple):
     seed_forward: Any = None
     seed_backward: Any = None
     mag_present: Any = None
+    start_age: Any = None
+    no_reading_until: Any = None
 
 
 def reversed_params(observer, params):
@@ -518,7 +523,10 @@ def passes_fn(
         lengths = jnp.asarray(lengths)
         per_run = {engine.RUN_PARAMS: item[engine.RUN_PARAMS]} if engine.RUN_PARAMS in item else {}
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None, **per_run}
+        age = _start_age(item["samples"], lengths)
         rev = {**reverse_item(item, lengths, hold, start_from_present=start_from_present), **per_run}
+        if start_from_present:  # the forward pass's start, as the backward pass's (idempotent)
+            item = {**item, "samples": _samples_start_from_present(item["samples"], item["dt"], lengths)}
         fwd = run(None, params, item).records
         bwd = run(None, reversed_params(observer, params), rev).records
         b_fwd = b_bwd = None
@@ -542,9 +550,49 @@ def passes_fn(
             dt_f, dt_b = dt_f[:, None], dt_b[:, None]
         mag = item["samples"].mag
         mag_present = None if mag is None else jax.vmap(lambda m, n: jnp.any(_present(m, n)))(mag, lengths)
-        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd, mag_present)
+        zero = jnp.zeros_like(age)
+        carried, waited = (age, zero) if start_from_present else (zero, age)
+        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd, mag_present, carried, waited)
 
     return fn
+
+
+#: Uncertainty (s of coasting) of a pass in a channel before its first reading of it, for observers that wait
+#: for one (VQF's heading before its first magnetometer reading is arbitrary): large against any start or settled
+#: variance (tau / 2), so the other pass has the weight there.
+UNINFORMED_S = 1e4
+
+
+def _samples_start_from_present(samples, dt, lengths):
+    """(B, T) samples with :func:`_start_from_present` on each recording's acc and mag (``dt`` (B,) or (B, T))."""
+    fix = jax.vmap(_start_from_present)
+    return samples._replace(
+        acc=None if samples.acc is None else fix(samples.acc, samples.gyr, dt, lengths),
+        mag=None if samples.mag is None else fix(samples.mag, samples.gyr, dt, lengths),
+    )
+
+
+def _start_age(samples, lengths):
+    """(B, 2, 2) s: for the forward pass (row 0) and the backward pass (row length - 1) of each recording, the time
+    to the nearest present acc (inclination) / mag (heading) reading; 0 for a sensor the recordings lack or one
+    with no present reading (no heading in either pass: :func:`fuse_passes` fuses the inclination only)."""
+
+    def one(t, acc, mag, length):
+        rows = []
+        for a in (acc, mag):
+            if a is None:
+                rows.append(jnp.zeros(2, t.dtype))
+                continue
+            ok = _present(a, length)
+            first, last = jnp.argmax(ok), a.shape[0] - 1 - jnp.argmax(ok[::-1])  # padding rows are not present
+            age = jnp.stack([t[first] - t[0], t[length - 1] - t[last]])
+            rows.append(jnp.where(jnp.any(ok), age, 0.0))
+        return jnp.stack(rows, axis=-1)  # (pass, channel)
+
+    acc, mag = samples.acc, samples.mag
+    return jax.vmap(one, in_axes=(0, None if acc is None else 0, None if mag is None else 0, 0))(
+        samples.t, acc, mag, jnp.asarray(lengths)
+    )
 
 
 def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
@@ -556,17 +604,25 @@ def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
     taus = (fusion.tau_inclination, fusion.tau_heading)
     starts = (fusion.start_inclination, fusion.start_heading)
 
-    def variances(trust_, dt):
-        return jnp.stack(
-            [
-                uncertainty(trust_[..., c], dt, jnp.asarray(taus[c], dtype), jnp.asarray(starts[c], dtype))
-                for c in (0, 1)
-            ],
-            axis=-1,
-        )
+    age, wait = passes.start_age, passes.no_reading_until
 
-    var_f = variances(fwd["trust"], passes.dt_forward)
-    var_b = _take_time(variances(bwd["trust"], passes.dt_backward), meas)
+    def variances(trust_, dt, k):
+        def start(c):  # a start set from a reading carried by the gyro: as good as coasting that long
+            s0 = jnp.asarray(starts[c], dtype)
+            return s0 if age is None else s0 + age[:, k, c].astype(dtype)
+
+        var = jnp.stack(
+            [uncertainty(trust_[..., c], dt, jnp.asarray(taus[c], dtype), start(c)) for c in (0, 1)], axis=-1
+        )
+        if wait is None:
+            return var
+        # an observer that had no reading of a channel yet: no weight in it before its first one
+        t = jnp.cumsum(jnp.broadcast_to(jnp.asarray(dt, dtype), trust_.shape[:-1]).at[:, 0].set(0.0), axis=-1)
+        before = t[..., None] < wait[:, None, k, :].astype(dtype)
+        return jnp.where(before, jnp.maximum(var, UNINFORMED_S), var)
+
+    var_f = variances(fwd["trust"], passes.dt_forward, 0)
+    var_b = _take_time(variances(bwd["trust"], passes.dt_backward, 1), meas)
     q_f = fwd["q"]
     q_b = _take_time(bwd["q"], meas)
     w = var_f / (var_f + var_b)

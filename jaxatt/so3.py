@@ -63,6 +63,38 @@ __all__ = [
 # Small helpers. Tiny 3x3 products written as broadcast multiply + sum: under vmap, XLA fuses them into one
 # elementwise loop, which is much faster on CPU than a batch of 3x3 dot calls.
 # --------------------------------------------------------------------------------------------------------
+def present(v: jax.Array) -> jax.Array:
+    """(...) True where a vector sensor's reading (..., 3) is present: finite and not all zero. A NaN or an
+    all-zero row marks a missing accelerometer / magnetometer reading everywhere in jaxatt (loggers write zeros
+    for a sensor they lack; the C filters BROAD runs read zero as missing). Not for the gyro, whose zero reading
+    (no rotation) is real."""
+    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
+
+
+def first_present_at_start(a, gyr, dt, length=None) -> jax.Array:
+    """``a`` (T, 3), a vector sensor's readings in the body (sensor) frame, with a missing row 0 (:func:`present`)
+    replaced by the first present reading j carried back to row 0's body frame by the gyro: R_0j a_j with
+    R_0j = exp(S(gyr_1 dt_1)) ... exp(S(gyr_j dt_j)) (gyr (T, 3) rad/s, body; step k turns by gyr_k over dt_k,
+    hold "next"; ``dt`` s, a number or (T,) with dt[0] unused; a non-finite gyro row turns by nothing). Zeros when
+    no row within the first ``length`` is present; ``a`` unchanged when row 0 is. An observer set up from its first
+    sample (TRIAD) then starts from a consistent pair of readings, off by the gyro's drift over t_j - t_0 (the
+    reading itself, uncarried, is off by every turn in between)."""
+    a = jnp.asarray(a)
+    n = a.shape[0]
+    ok = present(a) & (jnp.arange(n) < (n if length is None else length))
+    j = jnp.argmax(ok)
+    g = jnp.where(jnp.all(jnp.isfinite(gyr), axis=-1, keepdims=True), gyr, 0.0).astype(a.dtype)
+    steps = jnp.broadcast_to(jnp.asarray(dt, a.dtype), (n,))
+
+    def turn(r, x):
+        k, w, d = x
+        return jnp.where(k <= j, mm(r, exp(w * d)), r), None
+
+    r0j, _ = jax.lax.scan(turn, jnp.eye(3, dtype=a.dtype), (jnp.arange(1, n), g[1:], steps[1:]))
+    first = jnp.where(jnp.any(ok), mv(r0j, a[j]), jnp.zeros_like(a[0]))
+    return a.at[0].set(jnp.where(ok[0], a[0], first))
+
+
 def mm(a: jax.Array, b: jax.Array) -> jax.Array:
     """Matrix product of (..., n, k) and (..., k, m) arrays as a fused broadcast-sum (for tiny matrices)."""
     sa, sb = check_shape(a, "mm: a", (None, None)), check_shape(b, "mm: b", (None, None))

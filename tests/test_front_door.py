@@ -408,14 +408,15 @@ def test_default_noise_settings_hold_in_any_magnetometer_unit(name, quiet_log, t
 def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_log):
     """Row 0 of mag (a blank cell, a slower magnetometer) missing: the filters that start from the first sample
     (their TRIAD; the robust AHRS's field norm and dip) start from the first present reading instead of a stand-in
-    (the robust AHRS then rejected every real reading as disturbed: 16 deg instead of 3 on a simulated log). The
-    estimates are those of the log with that reading put in row 0, and as good as with every reading."""
+    (the robust AHRS then rejected every real reading as disturbed: 16 deg instead of 3 on a simulated log),
+    carried back to row 0 by the gyro (so3.first_present_at_start). The estimates are those of the log with that
+    reading put in row 0, and as good as with every reading."""
     samples, r_true = quiet_log
     g, a, m = (np.asarray(x) for x in (samples.gyr, samples.acc, samples.mag))
     gap, moved = m.copy(), m.copy()
     gap[:3] = np.nan
     moved[:3] = np.nan
-    moved[0] = m[3]
+    moved[0] = np.asarray(so3.first_present_at_start(jnp.asarray(gap[:4]), jnp.asarray(g[:4]), 0.01))[0]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the missing rows are warned about
         est = jaxatt.filter(name, g, a, gap, dt=0.01)
@@ -961,8 +962,9 @@ def test_a_recording_without_a_magnetometer_runs_inclination_only(name):
 def test_observers_set_up_from_the_first_sample_take_the_first_present_reading(name):
     """mekf, nlo, nlio and complementary take their start and references (TRIAD, the field, |a|) from sample 0;
     with its mag (or acc) reading missing (NaN, a slower magnetometer) every estimate was NaN. Now a missing row-0
-    reading is the sensor's first present one: the estimate equals the run on the recording whose row 0 holds
-    those readings (row 0 only feeds init on hold "next"), and it follows the truth of the simulated rotation."""
+    reading is the sensor's first present one carried back by the gyro (so3.first_present_at_start): the estimate
+    equals the run on the recording whose row 0 holds those readings (row 0 only feeds init on hold "next"), and
+    it follows the truth of the simulated rotation."""
     samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=2.0, dt=0.01)
     g, a, m = (np.asarray(x, float) for x in (samples.gyr, samples.acc, samples.mag))
     gaps_a, gaps_m = a.copy(), m.copy()
@@ -970,7 +972,11 @@ def test_observers_set_up_from_the_first_sample_take_the_first_present_reading(n
     gaps_m[:3] = np.nan
     est = jaxatt.filter(name, g, gaps_a, gaps_m, dt=0.01)
     filled_a, filled_m = gaps_a.copy(), gaps_m.copy()
-    filled_a[0], filled_m[0] = a[1], m[3]
+
+    def carry(x, j):  # row j carried back to row 0 by the gyro
+        return np.asarray(so3.first_present_at_start(jnp.asarray(x[: j + 1]), jnp.asarray(g[: j + 1]), 0.01))[0]
+
+    filled_a[0], filled_m[0] = carry(gaps_a, 1), carry(gaps_m, 3)
     ref = jaxatt.filter(name, g, filled_a, filled_m, dt=0.01)
     np.testing.assert_array_equal(est.quat, ref.quat)
     r_err = np.asarray(truth.r, float)[1:] @ np.swapaxes(est.rotation[1:], -1, -2)  # sensor-to-ENU truth

@@ -704,3 +704,29 @@ def test_integer_inputs_are_promoted_to_float():
     np.testing.assert_allclose(np.asarray(r), np.asarray(so3.exp(jnp.array([0.0, 0.0, 1.0]))), atol=1e-15)
     assert float(so3.angle_of(jnp.eye(3, dtype=int))) == 0.0
     assert float(so3.angle_error(jnp.eye(3, dtype=int), jnp.diag(jnp.array([1, -1, -1])))) == pytest.approx(PI)
+
+
+def test_first_present_at_start_carries_the_reading_back_by_the_gyro():
+    """A sensor turning at a constant rate (exact under the per-step exponentials): the first present reading j,
+    carried back to row 0 by the gyro, is the reading row 0 would have had; a present row 0 is kept; no present
+    reading gives zeros; NaN gyro rows turn by nothing."""
+    n, j, dt = 50, 30, 0.01
+    w = np.array([0.3, -0.7, 1.1])  # rad/s, body
+    m_nav = np.array([0.2, 20.0, -40.0])
+    r = [np.eye(3)]
+    for _ in range(n - 1):
+        r.append(r[-1] @ np.asarray(so3.exp(jnp.asarray(w * dt, jnp.float64))))
+    body = np.stack([rk.T @ m_nav for rk in r])  # v_body(k) = R_nb(k)^T v_nav
+    gyr = np.tile(w, (n, 1))
+    a = body.copy()
+    a[:j] = np.nan
+    got = np.asarray(so3.first_present_at_start(jnp.asarray(a), jnp.asarray(gyr), dt))
+    np.testing.assert_allclose(got[0], body[0], rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(got[1:], a[1:])
+    np.testing.assert_array_equal(np.asarray(so3.first_present_at_start(jnp.asarray(body), jnp.asarray(gyr), dt)), body)
+    none = np.asarray(so3.first_present_at_start(jnp.asarray(np.full((n, 3), np.nan)), jnp.asarray(gyr), dt))
+    np.testing.assert_array_equal(none[0], 0.0)
+    g2 = gyr.copy()
+    g2[j + 1 :] = np.nan  # after j: not used
+    np.testing.assert_allclose(np.asarray(so3.first_present_at_start(jnp.asarray(a), jnp.asarray(g2), dt))[0],
+                               body[0], atol=1e-10)  # fmt: skip

@@ -209,8 +209,9 @@ def quat_from_acc_mag_triad(acc: jax.Array, mag: jax.Array) -> jax.Array:
 
 
 def valid_vector(v: jax.Array) -> jax.Array:
-    """True where a sensor vector (..., 3) is usable: finite and not all zero (the C codes' "missing")."""
-    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
+    """True where a sensor vector (..., 3) is usable: finite and not all zero (the C codes' "missing";
+    :func:`jaxatt.so3.present`)."""
+    return so3.present(v)
 
 
 def start_quaternion(sample: ImuSample, fn=quat_from_acc_mag_triad) -> jax.Array:

@@ -258,9 +258,10 @@ def make_observer() -> Observer:
     def measure(p, q, b, cov, u: ImuSample):
         if u.acc is None or u.mag is None:
             raise ValueError("mekf needs accelerometer and magnetometer samples (acc and mag)")
-        acc, mag = jnp.where(_finite(u.acc), u.acc, 0.0), jnp.where(_finite(u.mag), u.mag, 0.0)
-        q, b, cov, l1 = _update(q, b, cov, acc, p.acc_ref_nav, p.r_acc, _finite(u.acc))
-        q, b, cov, l2 = _update(q, b, cov, mag, p.mag_ref_nav, p.r_mag, _finite(u.mag))
+        ok_acc, ok_mag = so3.present(u.acc), so3.present(u.mag)  # NaN or zero rows: missing readings
+        acc, mag = jnp.where(ok_acc[..., None], u.acc, 0.0), jnp.where(ok_mag[..., None], u.mag, 0.0)
+        q, b, cov, l1 = _update(q, b, cov, acc, p.acc_ref_nav, p.r_acc, ok_acc)
+        q, b, cov, l2 = _update(q, b, cov, mag, p.mag_ref_nav, p.r_mag, ok_mag)
         return q, b, cov, (l1 + l2).astype(cov.dtype)
 
     def step(p: Params, s: State, sample, dt):

@@ -429,8 +429,8 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
         gyr = jnp.asarray(sample.gyr, dtype)
         acc, mag = jnp.asarray(sample.acc, dtype), jnp.asarray(sample.mag, dtype)
         rt = jnp.swapaxes(p.r_hat_0, -1, -2)
-        v1 = jnp.where(_finite(acc), acc, so3.mv(rt, p.acc_ref_nav))
-        v2 = jnp.where(_finite(mag), mag, so3.mv(rt, p.mag_ref_nav))
+        v1 = jnp.where(so3.present(acc)[..., None], acc, so3.mv(rt, p.acc_ref_nav))
+        v2 = jnp.where(so3.present(mag)[..., None], mag, so3.mv(rt, p.mag_ref_nav))
         return State(
             jnp.asarray(sample.t, dtype),
             p.r_hat_0,
@@ -445,7 +445,7 @@ def make_observer(variant: str = "nlio-tv", triad: str = "orthonormal") -> Obser
     def sanitize(u: ImuSample, gyr_last):
         if u.acc is None or u.mag is None:
             raise ValueError(f"{variant} needs accelerometer and magnetometer samples (acc and mag)")
-        ok1, ok2 = _finite(u.acc), _finite(u.mag)
+        ok1, ok2 = so3.present(u.acc), so3.present(u.mag)  # NaN or zero rows: missing readings
         # NaN-free stand-ins; the masks switch the corresponding corrections off.
         return (
             u._replace(

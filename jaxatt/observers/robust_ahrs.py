@@ -681,10 +681,6 @@ def quat_from_acc_mag_enu(acc, mag):
     return so3.quat_canonical(so3.matrix_to_quat(so3.triad(acc, mag, "ENU")))
 
 
-def _valid(v):
-    return jnp.all(jnp.isfinite(v), axis=-1) & jnp.any(v != 0, axis=-1)
-
-
 def _init(p: Params, sample: ImuSample) -> State:
     """State at the first sample (broadcasts over leading batch axes of the sample)."""
     if sample.acc is None or sample.mag is None:
@@ -692,7 +688,7 @@ def _init(p: Params, sample: ImuSample) -> State:
     dtype = jnp.result_type(p.tau_acc)
     gyr = jnp.asarray(sample.gyr, dtype)
     acc, mag = jnp.asarray(sample.acc, dtype), jnp.asarray(sample.mag, dtype)
-    acc_ok, mag_ok = _valid(acc)[..., None], _valid(mag)[..., None]
+    acc_ok, mag_ok = so3.present(acc)[..., None], so3.present(mag)[..., None]
     acc_s = jnp.where(acc_ok, acc, jnp.array([0.0, 0.0, 1.0], dtype) * p.gravity)
     # a stand-in field, not parallel to acc_s, when a sample is missing
     mag_s = jnp.where(mag_ok & acc_ok, mag, jnp.array([0.0, 1.0, -1.0], dtype))
