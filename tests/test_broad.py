@@ -188,6 +188,16 @@ def test_a_diverged_estimate_never_scores_zero():
     mov[:5] = False
     rj = jax.jit(broad.broad_errors_jax)(jnp.asarray(qe), jnp.asarray(qt), jnp.asarray(mov))
     assert all(float(rj[k]) < 1e-6 for k in broad.METRICS)
+    # no scored sample: NaN in both (nothing to score), as in the in-scan reducer; the jnp metric said 0.0
+    none = np.zeros(40, bool)
+    ref = broad.broad_errors(qt, qt, none)
+    rj = jax.jit(broad.broad_errors_jax)(jnp.asarray(qt), jnp.asarray(qt), jnp.asarray(none))
+    acc = broad.METRIC_REDUCER.init(
+        0.0, {"q": jnp.asarray(qt[0]), "use": jnp.asarray(False)}, {"q": jnp.asarray(qt[0])}
+    )[0]
+    fin = broad.METRIC_REDUCER.finish(acc)
+    for k in broad.METRICS:
+        assert np.isnan(ref[k]) and np.isnan(float(rj[k])) and np.isnan(float(fin[k])), k
 
 
 def test_metric_jax_gradient_safe_with_nan_truth():

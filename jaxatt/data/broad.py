@@ -470,7 +470,7 @@ def broad_errors(quat_est, quat_true, movement) -> Dict[str, float]:
     movement = np.asarray(movement).astype(bool)
     total, heading, incl = error_angles(quat_est, quat_true)
     scored = movement & np.all(np.isfinite(np.asarray(quat_true, float)), axis=-1)
-    if not np.all(np.isfinite(np.asarray(quat_est, float))[scored]):
+    if not scored.any() or not np.all(np.isfinite(np.asarray(quat_est, float))[scored]):  # none, or diverged
         nan = float("nan")
         return dict(total_rmse_deg=nan, heading_rmse_deg=nan, inclination_rmse_deg=nan)
     rmse = lambda e: float(np.rad2deg(np.sqrt(np.nanmean(e[movement] ** 2))))  # noqa: E731
@@ -513,7 +513,7 @@ def broad_errors_jax(quat_est, quat_true, movement, mask=None) -> Dict[str, jax.
     ground truth is finite. Shapes (..., N, 4), (..., N, 4), (..., N); reduces the last sample axis.
 
     Agrees with :func:`broad_errors` to rounding (atan2 forms instead of arccos/arctan; see
-    :func:`error_angles_jax`). NaN rows of ``quat_true`` are replaced before any arithmetic (double-where), so
+    :func:`error_angles_jax`), NaN with no such sample as there. NaN rows of ``quat_true`` are replaced before any arithmetic (double-where), so
     gradients stay finite.
     """
     movement = jnp.asarray(movement, bool)
@@ -524,11 +524,12 @@ def broad_errors_jax(quat_est, quat_true, movement, mask=None) -> Dict[str, jax.
     qt = jnp.where(finite[..., None], quat_true, jnp.array([1.0, 0.0, 0.0, 0.0], quat_est.dtype))
     qe = jnp.where(use[..., None], quat_est, qt)  # unused samples: zero error, no NaN reaches the gradient
     errs = error_angles_jax(qe, qt)
-    n = jnp.maximum(jnp.sum(use, axis=-1), 1).astype(quat_est.dtype)
+    count = jnp.sum(use, axis=-1)
+    n = jnp.maximum(count, 1).astype(quat_est.dtype)
     out = {}
     for name, e in zip(METRICS, errs):
         ms = jnp.sum(jnp.where(use, e * e, 0.0), axis=-1) / n
-        out[name] = jnp.rad2deg(_safe_sqrt(ms))
+        out[name] = jnp.where(count > 0, jnp.rad2deg(_safe_sqrt(ms)), jnp.nan)  # none scored: NaN, as broad_errors
     return out
 
 
@@ -641,7 +642,7 @@ def _metric_update(acc, t, truth, out):
 def _metric_finish(acc):
     sse, n = acc
     ms = sse / jnp.maximum(n, 1.0)
-    return dict(zip(METRICS, jnp.rad2deg(_safe_sqrt(ms))))
+    return dict(zip(METRICS, jnp.where(n > 0, jnp.rad2deg(_safe_sqrt(ms)), jnp.nan)))  # none scored: NaN
 
 
 #: The BROAD metric accumulated while the scan runs: per trial the RMSE (deg) of the total, heading and
