@@ -549,3 +549,30 @@ def test_shipped_gradient_gains():
         np.testing.assert_allclose(m, m.T, rtol=0, atol=1e-12)
         assert np.linalg.eigvalsh(m).min() > 0, name
     assert float(q.kv) > 0
+
+
+def test_the_study_errors_read_the_estimate_from_q_as_everywhere():
+    """studies.nlio.errors reads the estimate through engine.estimate_r (q first): an observer of your own whose
+    output holds only q gets the errors of one that outputs the same rotation as r (it failed on out.r)."""
+    from typing import NamedTuple
+
+    import jaxatt
+    from jaxatt import montecarlo, so3
+    from jaxatt.studies import nlio as study
+
+    class OnlyQ(NamedTuple):
+        q: jnp.ndarray
+        bias: jnp.ndarray
+
+    class OnlyR(NamedTuple):
+        r: jnp.ndarray
+        bias: jnp.ndarray
+
+    _, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=0.05, dt=0.01)
+    one = jax.tree_util.tree_map(lambda a: a[3], truth)
+    r_est = so3.mm(jnp.asarray(one.r), so3.exp(jnp.asarray([0.01, -0.02, 0.03], one.r.dtype)))
+    bias = jnp.zeros(3, one.r.dtype)
+    from_q = study.errors(one, OnlyQ(so3.matrix_to_quat(r_est), bias))
+    from_r = study.errors(one, OnlyR(r_est, bias))
+    for k in from_r:
+        np.testing.assert_allclose(from_q[k], from_r[k], atol=1e-9, err_msg=k)

@@ -513,8 +513,8 @@ def broad_errors_jax(quat_est, quat_true, movement, mask=None) -> Dict[str, jax.
     ground truth is finite. Shapes (..., N, 4), (..., N, 4), (..., N); reduces the last sample axis.
 
     Agrees with :func:`broad_errors` to rounding (atan2 forms instead of arccos/arctan; see
-    :func:`error_angles_jax`), NaN with no such sample as there. NaN rows of ``quat_true`` are replaced before any arithmetic (double-where), so
-    gradients stay finite.
+    :func:`error_angles_jax`), NaN with no such sample as there. NaN rows of ``quat_true`` are replaced before
+    any arithmetic (double-where), so gradients stay finite.
     """
     movement = jnp.asarray(movement, bool)
     if mask is not None:

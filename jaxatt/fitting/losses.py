@@ -40,13 +40,6 @@ from ..types import Observer
 __all__ = ["LossSpec", "loss_spec", "POINTWISE", "POINTWISE_UNITS", "loss_reducer", "make_loss_fn", "segment_length"]
 
 
-def _check_dt(dt) -> float:
-    dt = float(dt)
-    if not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
-    return dt
-
-
 def _angle_sq(truth, out):
     r = engine.estimate_r(out)
     a = M.angle_error_deg(truth.r.astype(r.dtype), r)
@@ -261,7 +254,9 @@ def make_loss_fn(
     """
     if hold not in ("zoh", "linear"):
         raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}")
-    dt = _check_dt(dt)
+    from ..montecarlo import check_dt  # the one check of a step (refuses True and "0.01")
+
+    dt = check_dt(dt)
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import so3
+from .. import engine, so3
 from ..observers import mekf as mekf_mod
 from ..observers import nlio as nlio_mod
 from ..sim import ahrs
@@ -379,8 +379,9 @@ def euler_errors_deg(r_true, r_est):
 def errors(truth: ahrs.AhrsTruth, out):
     """Errors of one step: roll, pitch, yaw (deg), gyro bias b - b^ (deg/s) and, for the NLIO, the vector
     estimates v - v^ (m/s^2, G)."""
-    dt = out.r.dtype
-    roll, pitch, yaw = euler_errors_deg(truth.r.astype(dt), out.r)
+    r_est = engine.estimate_r(out)  # q first, as everywhere: an observer's own output may hold only q
+    dt = r_est.dtype
+    roll, pitch, yaw = euler_errors_deg(truth.r.astype(dt), r_est)
     e = {"roll": roll, "pitch": pitch, "yaw": yaw, "bias": jnp.rad2deg(truth.gyro_bias.astype(dt) - out.bias)}
     if getattr(out, "v1", None) is not None:
         e["acc"] = truth.acc.astype(dt) - out.v1
