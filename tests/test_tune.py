@@ -560,3 +560,30 @@ def test_a_fit_resumed_after_an_interrupt_or_extended_ends_as_the_uninterrupted_
     loss = lambda r: [h["train_loss"] for h in r.history]  # noqa: E731
     np.testing.assert_allclose(loss(rest), loss(full), rtol=1e-14)
     np.testing.assert_allclose(float(rest.last_theta["x"]), float(full.last_theta["x"]), rtol=1e-14)
+
+
+def test_resume_on_a_gains_file_of_0_1_says_to_start_from_its_gains(tmp_path, capsys):
+    """A gains file written by jaxatt 0.1 (format jaxatt-gains/1) holds no resume state: `tune --resume` on it
+    says so and points to --init-gains, before computing (it said "setting 'data' differs (None vs 'study')")."""
+    from jaxatt import cli
+
+    old = {
+        "format": "jaxatt-gains/1",
+        "experiment": "batista-so3",
+        "gains": {  # the values 0.1 wrote (a short tune of the paper's gains)
+            "alpha1": {"value": [4.7e-09, 5.0e-09, 2.5e-09, 1.2e-09, 1.2e-09], "switch_times_s": [300, 420, 600, 720]},
+            "alpha2": {"value": [0.105, 0.05, 0.025, 0.01, 0.005], "switch_times_s": [300, 420, 600, 720]},
+            "alpha0": {"value": 4.7e-11},
+            "alpha3": {"value": 1.0e-11},
+            "alpha4": {"value": 1.9e-11},
+        },
+        "status": "done",
+    }
+    out = tmp_path / "g.json"
+    out.write_text(json.dumps(old))
+    argv = ["tune", "--experiment", "batista-so3", "--steps", "2", "--duration", "20", "--out", str(out), "--resume"]
+    assert cli.main([*argv, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert re.match(r"jaxatt: error: resume: .*g.json holds no resume state \(a gains file of another jaxatt "
+                    r"version, e.g. 0.1.*--init-gains\)$", err), err  # fmt: skip
+    assert json.loads(out.read_text()) == old  # untouched

@@ -1359,6 +1359,11 @@ def _run(
     if previous is not None:
         if previous.get("observer") not in (None, name):
             raise ValueError(f"resume: the saved fit is of observer {previous.get('observer')!r}, not {name!r}")
+        if not previous.get("resume"):  # first: a file without one (another version's) has other settings too
+            raise ValueError(
+                f"resume: {out_path} holds no resume state (a gains file of another jaxatt version, e.g. 0.1, or "
+                "written without one): start a new fit from its gains instead (start= / --init-gains)"
+            )
         old = previous.get("settings", {})
         keys = [
             "data",
@@ -1401,8 +1406,6 @@ def _run(
                 )
         _check_same_start(previous.get("start"), start_gains)
         resume_state = previous.get("resume")
-        if not resume_state:
-            raise ValueError(f"resume: {out_path} holds no resume state")
         done = resume_state.get("step") if isinstance(resume_state, dict) else None
         if not isinstance(done, int) or isinstance(done, bool) or done < 0:
             raise ValueError(
