@@ -303,10 +303,13 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
                     f"acc_unit='g' in {api}, --acc-unit g in {cli}, converts it)"
                 )
             elif not 4.0 < acc_norm < 30.0:
-                unit = "mg (divide by 1000 and give acc_unit='g')" if 500 < acc_norm < 2000 else "raw counts"
+                if 500 < acc_norm < 2000:
+                    unit = f"mg? jaxatt expects m/s^2 (acc_unit='mg' in {api}, --acc-unit mg in {cli}, converts it)"
+                else:
+                    unit = "raw counts? jaxatt expects m/s^2"
                 notes.append(
                     f"the median |acc| is {acc_norm:.4g}, far from 9.81 m/s^2 (gravity, what an accelerometer "
-                    f"measures at rest): is it in {unit}? jaxatt expects m/s^2"
+                    f"measures at rest): is it in {unit}"
                 )
         for name, a in (("gyr", gyr), ("acc", acc)):
             at = _saturated(a)

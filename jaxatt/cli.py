@@ -195,13 +195,20 @@ def _trial_source_flags(p: argparse.ArgumentParser):
     p.add_argument(
         "--truth-frame",
         choices=FRAMES,
+        type=str.upper,
         default=None,
         help="--logs: the navigation frame of every log's ground truth (default ENU; north = magnetic north)",
     )
     p.add_argument("--columns", default=None, help="--logs: the CSV logs' own column names, e.g. t=time,gyr_x=GyroX")
-    p.add_argument("--gyr-unit", choices=GYR_UNITS, default=None, help="--logs: unit of the gyro columns (rad/s)")
-    p.add_argument("--acc-unit", choices=ACC_UNITS, default=None, help="--logs: unit of the accelerometer (m/s^2)")
-    p.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="--logs: unit of the t column (s)")
+    p.add_argument(
+        "--gyr-unit", choices=GYR_UNITS, type=str.lower, default=None, help="--logs: unit of the gyro columns (rad/s)"
+    )
+    p.add_argument(
+        "--acc-unit", choices=ACC_UNITS, type=str.lower, default=None, help="--logs: unit of the accelerometer (m/s^2)"
+    )
+    p.add_argument(
+        "--time-unit", choices=TIME_UNITS, type=str.lower, default=None, help="--logs: unit of the t column (s)"
+    )
     p.add_argument("--dt", type=_positive, default=None, help="--logs: the sample period (s) of logs without t")
 
 
@@ -299,6 +306,7 @@ def _parser() -> _Parser:
     fp.add_argument(
         "--frame",
         choices=FRAMES,
+        type=str.upper,
         default="ENU",
         help="navigation frame of the written quaternions (default ENU): a registered observer's estimate is "
         "converted to it; your own observer's (module:attr) is written as it is and only labelled with it",
@@ -310,17 +318,23 @@ def _parser() -> _Parser:
         help="sample period, s (default: the log's timestamps; a log without t needs it)",
     )
     fp.add_argument(
-        "--gyr-unit", choices=GYR_UNITS, default="rad/s", help="unit of the log's gyro columns (default rad/s)"
+        "--gyr-unit",
+        choices=GYR_UNITS,
+        type=str.lower,
+        default="rad/s",
+        help="unit of the log's gyro columns (default rad/s)",
     )
     fp.add_argument(
         "--acc-unit",
         choices=ACC_UNITS,
+        type=str.lower,
         default="m/s^2",
         help="unit of the log's accelerometer columns (default m/s^2)",
     )
     fp.add_argument(
         "--time-unit",
         choices=TIME_UNITS,
+        type=str.lower,
         default="s",
         help="unit of the log's t column (default s); the estimates' t is written in s",
     )
@@ -515,7 +529,9 @@ def _parser() -> _Parser:
         default=None,
         help="the CSV log's own column names, e.g. t=time,acc_x=AccX,... (the format's names: t, gyr_*, acc_*, mag_*)",
     )
-    ep.add_argument("--time-unit", choices=TIME_UNITS, default=None, help="unit of the log's t column (default s)")
+    ep.add_argument(
+        "--time-unit", choices=TIME_UNITS, type=str.lower, default=None, help="unit of the log's t column (default s)"
+    )
     ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
     ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
     ep.add_argument("--window", type=_positive, default=5.0, help="sliding window length T, s (default 5)")
@@ -525,7 +541,9 @@ def _parser() -> _Parser:
         default=None,
         help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)",
     )
-    ep.add_argument("--frame", choices=["NED", "ENU"], default=None, help="log: navigation frame of --mag-ref (NED)")
+    ep.add_argument(
+        "--frame", choices=["NED", "ENU"], type=str.upper, default=None, help="log: navigation frame of --mag-ref (NED)"
+    )
     ep.add_argument(
         "--threshold",
         type=_nonneg,

@@ -82,9 +82,10 @@ def unit_factor(argument: str, unit: str) -> float:
     table = _UNIT_TABLES.get(argument)
     if table is None:
         raise ValueError(f"unit argument must be one of {', '.join(_UNIT_TABLES)}, got {argument!r}")
-    if not isinstance(unit, str) or unit not in table:
+    key = unit.strip().lower() if isinstance(unit, str) else None  # "DEG/S", "G", "MS" as written on a logger
+    if key not in table:
         raise ValueError(f"{argument} must be one of {', '.join(repr(u) for u in table)}, got {unit!r}")
-    return table[unit]
+    return table[key]
 
 
 def to_si(a, argument: str, unit: str):

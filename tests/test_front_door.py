@@ -1636,3 +1636,19 @@ def test_bad_timestamps_are_refused_naming_the_row():
     ):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             jaxatt.filter(MY_OBSERVER, gyr, acc, mag, t=bad, params=MY_PARAMS)
+
+
+def test_units_and_frames_are_read_whatever_their_case():
+    """A logger writes "DEG/S", "G", "MS": the unit and frame arguments are read case-insensitively, in the API and
+    on the command line (the API took frame="ned" but refused "G"; the CLI refused --frame ned)."""
+    from jaxatt import cli, frames
+
+    assert frames.unit_factor("gyr_unit", "DEG/S") == frames.unit_factor("gyr_unit", "deg/s")
+    assert frames.unit_factor("acc_unit", " G ") == frames.unit_factor("acc_unit", "g")
+    with pytest.raises(ValueError, match=r"time_unit must be one of 's', 'ms', 'us', 'ns', got 'minutes'"):
+        frames.unit_factor("time_unit", "minutes")
+    args = cli._parser().parse_args(
+        ["filter", "--log", "x.csv", "--observer", "robust", "--frame", "ned", "--gyr-unit", "DEG/S", "--acc-unit", "G",
+         "--time-unit", "MS", "--out", "o.csv"]
+    )  # fmt: skip
+    assert (args.frame, args.gyr_unit, args.acc_unit, args.time_unit) == ("NED", "deg/s", "g", "ms")
