@@ -91,13 +91,27 @@ def compute_dtype(*arrays, dtype=None, what: str = "input"):
     return np.dtype(np.float64) if (wide and x64) else np.dtype(np.float32)
 
 
+def _from_table(v):
+    """``v`` as numpy can read it when it is a pandas object: nullable numbers (``Float64`` with ``NA``, which
+    numpy reads as objects) as floats with NaN, timezone-aware times as UTC datetime64; anything else as is."""
+    if isinstance(v, np.ndarray) or not hasattr(v, "to_numpy"):
+        return v
+    times = getattr(v, "dt", v)  # a Series' datetime accessor, or a DatetimeIndex itself
+    if getattr(times, "tz", None) is not None and hasattr(times, "tz_convert"):
+        return np.asarray(times.tz_convert(None))  # UTC, without the zone
+    try:
+        return v.to_numpy(dtype=float, na_value=np.nan)
+    except (TypeError, ValueError):
+        return v
+
+
 def _vectors(name: str, v, n: Optional[int], required: bool) -> Optional[np.ndarray]:
     if v is None:
         if required:
             raise ValueError(f"{name} is required (an array of shape (T, 3))")
         return None
     try:
-        a = np.asarray(v)
+        a = np.asarray(_from_table(v))
     except Exception as e:  # noqa: BLE001 - anything numpy cannot read
         raise ValueError(f"{name} must be an array of shape (T, 3), got {type(v).__name__}: {e}") from None
     if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
@@ -375,7 +389,7 @@ def _times(t, dt, n: int):
         raise ValueError("dt (the sample period, s) or t (timestamps, s) is required")
     if t is not None:
         try:
-            t = np.asarray(t)
+            t = np.asarray(_from_table(t))
             if t.dtype.kind in "mM":  # datetime64 / timedelta64: seconds from their own unit
                 from .data.logs import timestamp_seconds
 

@@ -1652,3 +1652,42 @@ def test_units_and_frames_are_read_whatever_their_case():
          "--time-unit", "MS", "--out", "o.csv"]
     )  # fmt: skip
     assert (args.frame, args.gyr_unit, args.acc_unit, args.time_unit) == ("NED", "deg/s", "g", "ms")
+
+
+def test_pandas_nullable_numbers_and_timezone_aware_times_are_read():
+    """pandas' nullable Float64 columns (NA for a missing cell: numpy reads them as objects) and timezone-aware
+    timestamps were refused as "got object"; they are read as floats with NaN and UTC times. pandas is not a
+    dependency: a stand-in with its to_numpy / dt.tz_convert behaviour."""
+
+    class Nullable:  # pd.array(..., dtype="Float64") in a DataFrame: to_numpy(dtype, na_value)
+        def __init__(self, a):
+            self.a = a
+
+        def to_numpy(self, dtype=None, na_value=None):
+            return np.where(np.isnan(self.a), na_value, self.a).astype(dtype)
+
+        def __array__(self, dtype=None, copy=None):
+            return np.asarray(self.a, object)
+
+    class Zoned:  # a tz-aware DatetimeIndex: tz, tz_convert(None) -> naive UTC
+        tz = "Europe/Berlin"
+
+        def __init__(self, t):
+            self.t = t
+
+        def to_numpy(self, dtype=None, na_value=None):
+            raise TypeError("cannot convert datetimes with a zone to float")
+
+        def tz_convert(self, zone):
+            assert zone is None
+            return self.t
+
+    n = 60
+    gyr = np.tile([0.0, 0.0, 0.5], (n, 1))
+    acc, mag = np.tile([0, 0, 9.81], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    t = np.datetime64("2026-01-01T00:00:00") + np.arange(n) * np.timedelta64(10, "ms")
+    with_na = mag.copy()
+    with_na[5] = np.nan
+    ref = jaxatt.filter("mahony", gyr, acc, with_na, t=t)
+    got = jaxatt.filter("mahony", gyr, acc, Nullable(with_na), t=Zoned(t))
+    np.testing.assert_array_equal(got.quat, ref.quat)
