@@ -75,12 +75,13 @@ class Excitation(NamedTuple):
 # Inputs
 # ------------------------------------------------------------------------------------------------------
 def _time(t) -> np.ndarray:
+    t_dtype = getattr(t, "dtype", None)
     t = np.asarray(t, float)
     if t.ndim != 1 or t.size < 2:
         raise ValueError(f"t must be a 1-D array of at least two sample times, got shape {t.shape}")
     from .data.logs import check_timestamps
 
-    check_timestamps(t, "t")
+    check_timestamps(t, "t", t_dtype)
     return t
 
 

@@ -326,7 +326,7 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
                     f"measures at rest): is it in {unit}"
                 )
         for name, a in (("gyr", gyr), ("acc", acc)):
-            at = _saturated(a)
+            at = _saturated(a, SATURATION_FLOOR[name])
             if at:
                 notes.append(
                     f"{name} stays at exactly {at[1]:.6g} in {at[0]} samples: is the sensor saturated (clipped at "
@@ -335,7 +335,7 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
         if step >= 1.0:
             unit = "ms" if step < 1e3 else ("us" if step < 1e6 else "ns")
             if step == 1.0 and not from_dt and np.all(ts == np.round(ts)):
-                unit += " (or is t a sample counter?)"
+                unit += " (or is t a sample counter? if the log truly runs at 1 Hz, ignore this)"
             if from_dt:  # the user's own sample period, not timestamps
                 notes.append(
                     f"the sample period dt is {step:.4g} s: is it in {unit}? jaxatt expects s "
@@ -357,11 +357,17 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
     return notes
 
 
-def _saturated(a) -> Optional[tuple]:
-    """(count, value) when some axis of a noisy ``a`` (T, 3) sits at exactly its largest |value| in at least 10
-    samples and 0.1 % of them, but under half (a clipped sensor: the genuine peaks of a noisy signal rarely repeat
-    one reading), else None. Noisy: most of the other samples differ from the one before (noise-free simulated
-    data holds constant stretches; a constant signal is not clipped)."""
+#: Smallest |reading| a clipped sensor is taken to sit at (:func:`_saturated`): gyro ranges start at 125 deg/s
+#: (2.2 rad/s), accelerometer ranges at 2 g; a quiet signal's repeated quantisation step is far below.
+SATURATION_FLOOR = {"gyr": 2.0, "acc": 15.0}
+
+
+def _saturated(a, floor: float) -> Optional[tuple]:
+    """(count, value) when some axis of a noisy ``a`` (T, 3) sits at exactly its largest |value| (at least
+    ``floor``: a sensor's full scale, not a quiet signal's quantisation step) in at least 10 samples and 0.1 % of
+    them, but under half, at least 3 of them in a row (a clipped sensor: the genuine peaks of a noisy signal rarely
+    repeat one reading), else None. Noisy: most of the other samples differ from the one before (noise-free
+    simulated data holds constant stretches; a constant signal is not clipped)."""
     if a is None:
         return None
     a = np.asarray(a, float)
@@ -369,11 +375,11 @@ def _saturated(a) -> Optional[tuple]:
         for axis in range(a.shape[-1]):
             x = np.abs(a[:, axis])
             x = x[np.isfinite(x)]
-            if x.size < 3 or not x.max() > 0:
+            if x.size < 3 or not x.max() >= floor:
                 continue
             top = x == x.max()
             count = int(top.sum())
-            if not max(10, 1e-3 * x.size) <= count < 0.5 * x.size:
+            if not max(10, 1e-3 * x.size) <= count < 0.5 * x.size or not np.any(top[2:] & top[1:-1] & top[:-2]):
                 continue
             others = ~top[1:] & ~top[:-1]
             if np.mean(np.diff(x)[others] != 0) > 0.5:
@@ -513,12 +519,11 @@ def _median_finite(x) -> float:
     return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
 
 
-def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True, warn_fields=None):
+def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
     """:func:`recording_defaults` for a batch of trials sharing one params: the median over the trials of their
     first step (s) and of their first field readings' norms. Trials far from the median (a field in another unit,
     another sampling rate, compared by their median steps) are warned about unless ``warn`` is False: the defaults
-    fit them poorly, and their scores depend on the batch. ``warn_fields``: only those fields are shared (e.g. the
-    gains a fit tunes; the others are each trial's own, :func:`recording_defaults_per_trial`); None: all."""
+    fit them poorly, and their scores depend on the batch (a fit, whose one params serve every trial)."""
     steps = [float(np.asarray(tr.samples.t[1]) - np.asarray(tr.samples.t[0])) for tr in trials]
     norms = [_first_field_norm(tr.samples.mag) for tr in trials]
     step, norm = _median_finite(steps), _median_finite(norms)
@@ -531,7 +536,6 @@ def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True, wa
              (entry.first_step,) if entry.first_step else (), 1.1, 1.1, "another sampling rate"),
         )  # fmt: skip
         for what, values, value, fields, most, far_from, why in cases:
-            fields = tuple(f for f in fields if warn_fields is None or f in warn_fields)
             if not [f for f in fields if f not in named] or _spread(values) <= most:
                 continue
             far = [tr.name for tr, v in zip(trials, values) if _spread([v, value]) > far_from]
@@ -1479,7 +1483,8 @@ def _saved_runs(out, spec: str, name: str, runs: int):
             for k in differ
         ]
         raise ValueError(
-            f"resume: {out} holds runs of another call ({', '.join(said) or 'the observer'} differ); call "
+            f"resume: {out} holds runs of another call ({', '.join(said) or 'the observer'} "
+            f"{'differ' if len(said) > 1 else 'differs'}); call "
             "with the same arguments, or pass overwrite=True instead"
         )
     res = saved[name]

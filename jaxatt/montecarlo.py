@@ -297,7 +297,7 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     if dt is None:
         from .data.logs import check_timestamps
 
-        check_timestamps(samples.t, "samples.t")
+        check_timestamps(samples.t, "samples.t", getattr(samples.t, "dtype", None))
         steps = np.diff(np.asarray(samples.t, float))
     else:
         steps = check_dt(dt)

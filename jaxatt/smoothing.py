@@ -524,9 +524,10 @@ def passes_fn(
         per_run = {engine.RUN_PARAMS: item[engine.RUN_PARAMS]} if engine.RUN_PARAMS in item else {}
         item = {"samples": item["samples"], "dt": item["dt"], "truth": None, **per_run}
         age = _start_age(item["samples"], lengths)
+        given = item["samples"]  # as recorded: the seeded passes below reverse these, not the filled ones
         rev = {**reverse_item(item, lengths, hold, start_from_present=start_from_present), **per_run}
         if start_from_present:  # the forward pass's start, as the backward pass's (idempotent)
-            item = {**item, "samples": _samples_start_from_present(item["samples"], item["dt"], lengths)}
+            item = {**item, "samples": _samples_start_from_present(given, item["dt"], lengths)}
         fwd = run(None, params, item).records
         bwd = run(None, reversed_params(observer, params), rev).records
         b_fwd = b_bwd = None
@@ -537,7 +538,7 @@ def passes_fn(
             b_bwd = _last(fwd["bias"], lengths)
             s = item["samples"]
             item = {**item, "samples": s._replace(gyr=s.gyr - b_fwd[:, None, :].astype(s.gyr.dtype))}
-            back = reverse_item({**item, "samples": s}, lengths, hold, b_bwd, start_from_present)
+            back = reverse_item({**item, "samples": given}, lengths, hold, b_bwd, start_from_present)
             rev = {**back, **per_run}
             fwd = run(None, params, item).records
             bwd = run(None, reversed_params(observer, params), rev).records
@@ -680,8 +681,9 @@ def smoother_fn(
         keep_outputs: also return every output field of both passes.
         segment: checkpointed segment length of the scans (:func:`jaxatt.engine.segment_length`; 0 = none):
             reverse mode then stores one state per segment.
-        start_from_present: the backward pass starts from the last present acc / mag reading when the last row
-            misses one (:func:`reverse_item`; for observers set up from their first sample).
+        start_from_present: each pass starts from its nearest present acc / mag reading, carried to its first row
+            by the gyro, when that row misses one (:func:`_start_from_present`; for observers set up from their
+            first sample).
     ``item`` is :class:`jaxatt.engine.Recorded`'s batch (``samples``: :class:`jaxatt.types.ImuSample` of
     (B, T, ...) arrays in the sensor frame, rad/s, m/s^2, any field unit; ``dt``; ``truth`` ignored);
     ``lengths`` (B,) the real samples of each recording, the rest padding that repeats the last sample

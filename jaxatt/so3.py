@@ -80,17 +80,19 @@ def first_present_at_start(a, gyr, dt, length=None) -> jax.Array:
     sample (TRIAD) then starts from a consistent pair of readings, off by the gyro's drift over t_j - t_0 (the
     reading itself, uncarried, is off by every turn in between)."""
     a = jnp.asarray(a)
+    if not jnp.issubdtype(a.dtype, jnp.floating):  # raw counts
+        a = a.astype(jnp.result_type(float))
     n = a.shape[0]
     ok = present(a) & (jnp.arange(n) < (n if length is None else length))
-    j = jnp.argmax(ok)
+    j = jnp.where(jnp.any(ok), jnp.argmax(ok), 0)
     g = jnp.where(jnp.all(jnp.isfinite(gyr), axis=-1, keepdims=True), gyr, 0.0).astype(a.dtype)
     steps = jnp.broadcast_to(jnp.asarray(dt, a.dtype), (n,))
 
-    def turn(r, x):
-        k, w, d = x
-        return jnp.where(k <= j, mm(r, exp(w * d)), r), None
+    def turn(kr):  # steps 1 ... j only: none when row 0 is present (a while loop, not a scan over the recording)
+        k, r = kr
+        return k + 1, mm(r, exp(g[k] * steps[k]))
 
-    r0j, _ = jax.lax.scan(turn, jnp.eye(3, dtype=a.dtype), (jnp.arange(1, n), g[1:], steps[1:]))
+    _, r0j = jax.lax.while_loop(lambda kr: kr[0] <= j, turn, (jnp.asarray(1, j.dtype), jnp.eye(3, dtype=a.dtype)))
     first = jnp.where(jnp.any(ok), mv(r0j, a[j]), jnp.zeros_like(a[0]))
     return a.at[0].set(jnp.where(ok[0], a[0], first))
 

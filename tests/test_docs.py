@@ -83,7 +83,10 @@ def test_the_0_1_readmes_python_example_still_runs_through_the_aliases():
         with pytest.warns(DeprecationWarning, match=f"{name} is {new} since 0.2"):
             old = importlib.import_module(name)
     assert old.Positive is new_parametrize.Positive
+    import jaxatt.experiments.nlio  # 0.1's submodule imports  # noqa: F401
     from jaxatt.experiments import batista_ges as E  # the 0.1 README's lines
+
+    assert sys.modules["jaxatt.experiments.nlio"] is importlib.import_module("jaxatt.studies.nlio")
 
     assert E is batista_ges
     cfg = E.Config()

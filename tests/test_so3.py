@@ -726,6 +726,12 @@ def test_first_present_at_start_carries_the_reading_back_by_the_gyro():
     np.testing.assert_array_equal(np.asarray(so3.first_present_at_start(jnp.asarray(body), jnp.asarray(gyr), dt)), body)
     none = np.asarray(so3.first_present_at_start(jnp.asarray(np.full((n, 3), np.nan)), jnp.asarray(gyr), dt))
     np.testing.assert_array_equal(none[0], 0.0)
+    g3, g0 = gyr.copy(), gyr.copy()
+    g3[5], g0[5] = np.nan, 0.0  # a NaN gyro row before j turns by nothing
+    with_nan, with_zero = (np.asarray(so3.first_present_at_start(a, g, dt))[0] for g in (g3, g0))
+    np.testing.assert_array_equal(with_nan, with_zero)
+    counts = np.round(np.where(np.isnan(a), 0, a) * 100).astype(np.int32)  # raw counts (zero rows: missing)
+    assert np.all(np.isfinite(np.asarray(so3.first_present_at_start(counts, gyr, dt))))
     g2 = gyr.copy()
     g2[j + 1 :] = np.nan  # after j: not used
     np.testing.assert_allclose(np.asarray(so3.first_present_at_start(jnp.asarray(a), jnp.asarray(g2), dt))[0],

@@ -281,7 +281,7 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
         if t is None or t.shape != (n,):
             got = "None" if t is None else str(list(t.shape))
             raise ValueError(f"{where}: samples.t must have shape (N,) = ({n},) like gyr, seconds; got {got}")
-        check_timestamps(t, "samples.t", where=f"{where}: ")
+        check_timestamps(t, "samples.t", getattr(s.t, "dtype", None), f"{where}: ")
         step = float(np.median(np.diff(t)))
         if not abs(step * rate - 1.0) <= 0.01:
             raise ValueError(f"{where}: rate_hz = {rate:g} Hz but samples.t steps by {step:.6g} s ({1 / step:.6g} Hz)")

@@ -129,8 +129,8 @@ def check_timestamps(t, name: str = "t", dtype=None, where: str = "") -> None:
         return
     k = int(np.argmax(d <= 0))
     hint = narrow_timestamps_hint(dtype, t)
-    if not hint and d[k] == 0 and np.mean(d == 0) > 0.05:  # many repeats: stamps coarser than the sample period
-        step = float(np.median(d[d > 0])) if np.any(d > 0) else float("nan")
+    if not hint and d[k] == 0 and np.mean(d == 0) > 0.05 and np.any(d > 0):  # stamps coarser than the period
+        step = float(np.median(d[d > 0]))
         hint = (
             f"; {int(np.sum(d == 0))} of {d.size} steps repeat a timestamp (they advance by {step:.3g} s): stamps "
             "rounded coarser than the sample period? give the sample period (dt) instead"

@@ -458,18 +458,14 @@ def recorded_objective(
     dtype=None,
     step_remat: bool = False,
     checkpoint="auto",
-    run_params=None,
 ):
     """(objective(theta, batch), n_trials, take(indices) -> batch): the group-weighted mean per-trial total RMSE
     (deg, BROAD metric) of ``observer`` on ``trials``, through the whole scan (checkpointed: the reverse pass
     stores one state per segment of about sqrt(T) steps and trial and recomputes each segment;
-    :func:`jaxatt.data.broad.metric_batch`). ``aux["metric"]``: the same mean. ``run_params``: each trial's own
-    values of fields the fit does not tune (:func:`jaxatt.data.broad.batch_item`)."""
+    :func:`jaxatt.data.broad.metric_batch`). ``aux["metric"]``: the same mean."""
     from ..data import broad as B
 
-    fn, item = B.metric_batch(
-        observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint, run_params=run_params
-    )
+    fn, item = B.metric_batch(observer, trials, hold=hold, dtype=dtype, step_remat=step_remat, checkpoint=checkpoint)
     groups = [t.group or B.group_of(t.name) for t in trials]
 
     def take(idx):
@@ -953,7 +949,6 @@ def _fit(
         check_own_observer,
         compute_dtype,
         recording_defaults_for_trials,
-        recording_defaults_per_trial,
         resolve_observer,
         trial_arrays,
         trials_start_from_valid,
@@ -972,11 +967,11 @@ def _fit(
     val_trials = B.check_trials(val_list, "val", need_scored=True) if val_list else []
     dt_ = compute_dtype(*trial_arrays([*trials, *val_trials]), dtype=dtype, what="trial data")
     obs, p0, entry, name = resolve_observer(observer, params, dtype=dt_)
-    given_p0 = p0
-    p0 = recording_defaults_for_trials(entry, params, p0, trials, warn=False)
+    # one params for every trial: the data-dependent defaults are the trials' median (so FitResult.params, scored
+    # with broad_score, gives the fit's own loss); trials far from it are warned about
+    p0 = recording_defaults_for_trials(entry, params, p0, trials, warn=start is None)  # start= may set them
     trials = trials_start_from_valid(entry, trials)
     val_trials = trials_start_from_valid(entry, val_trials)
-    p_median = p0
     p0 = jax.tree_util.tree_map(
         lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a,
         _start(p0, start, entry),
@@ -984,36 +979,17 @@ def _fit(
     if entry is not None and entry.check is not None:
         entry.check(p0)
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
-    # a data-dependent default the fit does not tune (VQF's ts0, the NLIO's p0_mag), and start= left alone, is
-    # each trial's own (as broad_score and filter set it); one the fit tunes starts from the trials' median
-    untouched = lambda f: np.array_equal(np.asarray(getattr(p0, f)), np.asarray(getattr(p_median, f), dt_))  # noqa: E731
-    run_params, val_run_params = (
-        {f: v for f, v in (recording_defaults_per_trial(entry, params, given_p0, tr)[1] or {}).items()
-         if f not in bound.transforms and untouched(f)} or None
-        for tr in (trials, val_trials or trials)
-    )  # fmt: skip
-    if start is None and entry is not None:
-        recording_defaults_for_trials(entry, params, given_p0, trials, warn_fields=set(bound.transforms))
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD trials hold sensor-to-ENU truth")
     hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
     check_own_observer(obs, p0, entry, dt_, hold)
     check_own_estimate(obs, p0, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)
     objective, n, take = recorded_objective(
-        obs,
-        bound,
-        trials,
-        hold=hold,
-        dtype=dt_,
-        step_remat=bool(step_remat),
-        checkpoint=checkpoint,
-        run_params=run_params,
+        obs, bound, trials, hold=hold, dtype=dt_, step_remat=bool(step_remat), checkpoint=checkpoint
     )
     val_batch = val_objective = None
     if val_trials:
-        val_objective, vn, vtake = recorded_objective(
-            obs, bound, val_trials, hold=hold, dtype=dt_, run_params=val_run_params
-        )
+        val_objective, vn, vtake = recorded_objective(obs, bound, val_trials, hold=hold, dtype=dt_)
         val_batch = vtake(np.arange(vn))
 
     settings = {

@@ -699,7 +699,8 @@ def _read_runs(path, spec: str, study=None, plain_trace_every=0) -> Dict[str, An
     if differ:
         said = ", ".join("--plot" if k == "trace_every" else k for k in differ)
         raise ValueError(
-            f"--resume: {path} holds runs of another set-up ({said} differ); rerun with the same flags, or without "
+            f"--resume: {path} holds runs of another set-up ({said} {'differ' if len(differ) > 1 else 'differs'}); "
+            "rerun with the same flags, or without "
             "--resume to start again"
         )
     return results
