@@ -555,6 +555,7 @@ def batch_fn(
         world = source.prepare(world)
         p = cast_floats(params, obs_dtype)
         per_run = batch.get(RUN_PARAMS) if isinstance(batch, dict) else None  # {field: (B, ...)} or None
+        per_run = cast_floats(per_run, obs_dtype) if per_run else None  # once, not in every step
 
         def init_one(item):
             src, s0, truth0, t0 = source.first(world, item)
@@ -570,7 +571,7 @@ def batch_fn(
             src, s_next, truth, t_next, dt = source.advance(world, src, k, x, const)
             s_next = cast_floats(s_next, obs_dtype)
             u = s_prev if hold == "zoh" else (s_next if hold == "next" else Interval(s_prev, s_next))
-            st, out = observer.step(with_run_params(p, run_params, obs_dtype), st, u, jnp.asarray(dt, obs_dtype))
+            st, out = observer.step(with_run_params(p, run_params), st, u, jnp.asarray(dt, obs_dtype))
             acc, rec = reducer.update(acc, t_next, truth, out)
             return src, s_next, st, acc, rec
 
