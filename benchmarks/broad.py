@@ -233,7 +233,7 @@ def run_jaxatt_robust(trials, gains, repeats):
             obs,
             engine.Recorded(n_steps, False),
             engine.records_of(_pick_q, 1),
-            hold=entry.hold,
+            hold=registry.hold_of(entry),
             obs_dtype=np.dtype(dtype),
         )
         item = jax.device_put({**broad.batch_item(padded, dtype), "truth": None})  # arrays on the device first
@@ -436,7 +436,7 @@ def offline_passes(trials, name, params):
     padded = broad.pad_trials(trials)
     item = jax.device_put({**broad.batch_item(padded, "float64"), "truth": None})
     fn = smoothing.compiled_passes(
-        registry.recorded_observer(entry), int(padded.samples.t.shape[1]) - 1, hold=entry.hold, obs_dtype=np.float64
+        registry.recorded_observer(entry), int(padded.samples.t.shape[1]) - 1, obs_dtype=np.float64
     )
     t0 = time.perf_counter()
     passes = jax.block_until_ready(fn(params, item, jnp.asarray(padded.lengths)))

@@ -599,7 +599,7 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
     (``params`` required)."""
     if isinstance(observer, (str, registry.Entry)):
         entry = registry.get(observer)
-        obs = registry.recorded_observer(entry) if recorded else entry.make()
+        obs = registry.recorded_observer(entry) if recorded else registry.with_hold(entry, entry.make())
         if params is None:
             params = entry.params(dtype=dtype)
         elif isinstance(params, str):
@@ -642,6 +642,7 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
                 getattr(observer, "name", "observer"),
                 getattr(observer, "output", None),
                 getattr(observer, "time_reversed", None),
+                getattr(observer, "hold", None),
             ),
             params,
             dtype=dtype,
@@ -886,7 +887,7 @@ def filter(
                 stacklevel=2,
             )
     engine.check_finite_params(p, name)
-    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    hold = engine.hold_for(obs, hold, "next")
     check_own_observer(obs, p, entry, dt_, hold, acc=acc_a is not None, mag=mag_a is not None)
     if spec is None:  # the smoother sets both passes' starts itself (and knows which were missing)
         acc_a, mag_a = start_from_valid(entry, acc_a, mag_a, gyr_a, ts)
@@ -1094,7 +1095,7 @@ def broad_score(
     p, run_params = recording_defaults_per_trial(entry, params, p, trials)  # each trial its own, as filter does
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD scores sensor-to-ENU estimates")
-    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    hold = engine.hold_for(obs, hold, "next")
     check_own_observer(obs, p, entry, dt_, hold)
     check_own_estimate(obs, p, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)
     if entry is not None and "mag" not in entry.needs:
@@ -1316,7 +1317,7 @@ def monte_carlo(
         )
     obs, p, entry, name = resolve_observer(observer, params, dtype=dt_)
     engine.check_finite_params(p, name)
-    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    hold = engine.hold_for(obs, hold, "next")
     check_own_observer(obs, p, entry, dt_, hold)
     if entry is not None and "mag" not in entry.needs:
         from .studies.ahrs import SIX_D_NOTE

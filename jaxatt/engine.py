@@ -56,6 +56,7 @@ __all__ = [
     "segment_length",
     "cast_floats",
     "check_hold",
+    "hold_for",
     "INIT_PARAMS_BLOCK",
     "compiled",
     "records_of",
@@ -78,6 +79,14 @@ def check_hold(hold: str) -> str:
     if hold not in HOLDS:
         raise ValueError(f"hold must be one of {', '.join(HOLDS)}, got {hold!r}")
     return hold
+
+
+def hold_for(observer: Observer, hold: Optional[str] = None, default: str = "zoh") -> str:
+    """The hold a runner uses (:data:`jaxatt.types.HOLDS`): ``hold`` when given, else the observer's own
+    (``Observer.hold``), else the runner's ``default`` for an observer that declares none ("next" at the front
+    door, "zoh" in the engine, :mod:`jaxatt.montecarlo` and the losses). ValueError for a hold that is none of
+    them."""
+    return check_hold(hold or getattr(observer, "hold", None) or default)
 
 
 def check_finite_params(params, name: str = "observer") -> None:
@@ -267,7 +276,7 @@ def estimate_q(out):
     return _estimate(out, "q", "r", lambda r: so3.quat_canonical(so3.matrix_to_quat(r)))
 
 
-def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold: str = "next") -> None:
+def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold: Optional[str] = None) -> None:
     """ValueError (one line) unless ``observer`` keeps the contract the scan relies on, checked on shapes only
     (``jax.eval_shape``, nothing is computed): ``step(params, state, sample, dt)`` (an :class:`Interval` of
     samples for ``hold="linear"``) returns ``(state, output)``;
@@ -280,7 +289,7 @@ def check_observer(observer: Observer, params, sample0, dt, obs_dtype=None, hold
     obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
     check_finite_params(params, name)
     p = cast_floats(params, obs_dtype)
-    u = Interval(sample0, sample0) if check_hold(hold) == "linear" else sample0
+    u = Interval(sample0, sample0) if hold_for(observer, hold, "next") == "linear" else sample0
 
     def init_and_step(p, sample0, u):  # traced, as in the scan
         state = cast_floats(observer.init(p, sample0), obs_dtype)
@@ -511,7 +520,7 @@ def batch_fn(
     source,
     reducer: Reducer,
     *,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     obs_dtype=None,
     segment: int = 0,
     step_remat: bool = False,
@@ -526,7 +535,8 @@ def batch_fn(
         source: a :class:`Simulated` (``world`` = scenario, ``batch`` = (B, 2) keys) or :class:`Recorded`
             (``world`` = None, ``batch`` = dict of (B, T, ...) arrays).
         reducer: a :class:`Reducer`.
-        hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`).
+        hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`); None: the observer's own, else "zoh"
+            (:func:`hold_for`).
         obs_dtype: the observer's arithmetic (default: jax's default float).
         segment: checkpointed segment length in steps (:func:`segment_length`; 0 = none).
         step_remat: also rematerialise each step (with ``segment``).
@@ -541,7 +551,7 @@ def batch_fn(
     Not jitted (wrap it in ``jax.jit`` or :func:`jaxatt.sharding.shard_runs`); differentiable in ``params`` and
     in the world's arrays.
     """
-    check_hold(hold)
+    hold = hold_for(observer, hold)
     obs_dtype = jnp.dtype(obs_dtype) if obs_dtype is not None else jnp.result_type(float)
     n_steps = int(source.n_steps)
     every = int(reducer.every)
@@ -718,7 +728,6 @@ class Static:
         self.value = value
 
 
-@functools.lru_cache(maxsize=64)
 def compiled(
     observer: Observer,
     source,
@@ -732,8 +741,15 @@ def compiled(
     """``jit(fn(world, params, batch))`` of :func:`batch_fn` (``post(result)`` applied to its Result inside,
     e.g. a loss averaged over runs), with the runs split over ``mesh`` (None: one device;
     :func:`jaxatt.sharding.shard_runs` with ``out_specs`` (a :class:`Static` when unhashable) and ``reduce``).
-    Cached on every argument, so calls with new params, a world of the same structure or new runs reuse the
-    compiled program."""
+    Cached on every argument (the hold as :func:`hold_for` resolves it), so calls with new params, a world of the
+    same structure or new runs reuse the compiled program."""
+    static["hold"] = hold_for(observer, static.get("hold"))
+    # the cache keys on the keywords' order too: one order for every caller
+    return _compiled(observer, source, reducer, mesh, post, out_specs, reduce, **dict(sorted(static.items())))
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(observer, source, reducer, mesh, post, out_specs, reduce, **static):
     from . import sharding
 
     fn = batch_fn(observer, source, reducer, **static)

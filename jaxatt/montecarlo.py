@@ -75,6 +75,11 @@ def check_observer(observer) -> Observer:
             else ""
         )
         raise ValueError(f"observer must be a jaxatt.Observer(init, step), got {type(observer).__name__}{hint}")
+    if observer.hold is not None:
+        try:
+            engine.check_hold(observer.hold)
+        except ValueError as e:
+            raise ValueError(f"observer {observer.name!r}: Observer.hold: {e}") from None
     return observer
 
 
@@ -215,7 +220,7 @@ def _pick_out(t, truth, out):
 
 
 @functools.lru_cache(maxsize=32)
-def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
+def log_runner(observer: Observer, hold: Optional[str] = None, dtype=None):
     """Pure ``fn(params, samples, dt) -> Out (T, ...)``: ``observer`` over one log of T samples (any sample
     pytree, time-major), T estimates (row 0 ``init``'s). ``dt``: a scalar step (s) or the T - 1 steps
     t_{k+1} - t_k. ``dtype``: the observer's arithmetic (default: the samples' float type); ``init`` sees the first
@@ -226,8 +231,9 @@ def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
     (:func:`jaxatt.engine.whole_blocks`; the last sample and step repeated, the extra estimates dropped): the
     compiled scan then holds one copy of the step instead of two (full blocks and a partial last one), which
     roughly halves its compile time, and logs of nearby lengths share it. Estimate k depends on samples 0..k only,
-    so the T estimates are those of the unpadded scan."""
-    engine.check_hold(hold)
+    so the T estimates are those of the unpadded scan. ``hold``: None, the observer's own, else "zoh"
+    (:func:`jaxatt.engine.hold_for`)."""
+    hold = engine.hold_for(observer, hold)
     obs_dtype = None if dtype is None else jnp.dtype(dtype)
 
     @jax.jit
@@ -270,7 +276,9 @@ def log_runner(observer: Observer, hold: str = "zoh", dtype=None):
     return run_log
 
 
-def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", validate: Optional[Callable] = None):
+def run(
+    observer: Observer, params, samples, dt=None, *, hold: Optional[str] = None, validate: Optional[Callable] = None
+):
     """Run ``observer`` over a log; returns its stacked outputs, T estimates for T samples (JAX arrays).
 
     Args:
@@ -278,7 +286,8 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
             frame gyro (rad/s) and vector sensors. NaN marks a missing reading (each observer documents what it
             does then).
         dt: step (s); None takes dt_k = t_{k+1} - t_k from the timestamps.
-        hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`).
+        hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`); None: the observer's own
+            (``Observer.hold``: "next" for the registered filters, as :func:`jaxatt.filter`), else "zoh".
         validate: optional parameter check (e.g. ``batista_ges.check_params``), run on concrete params.
     Returns the observer's Out with a leading time axis: row 0 is ``init``'s estimate at t_0, row k the estimate
     at t_k (:mod:`jaxatt.engine`).
@@ -289,7 +298,7 @@ def run(observer: Observer, params, samples, dt=None, *, hold: str = "zoh", vali
     from .api import compute_dtype  # the front door's precision rule (imported when it runs: no cycle)
 
     compute_dtype(*(v for v in samples if v is not None), what="input (samples)")  # float64 with x64 off: said
-    engine.check_hold(hold)
+    hold = engine.hold_for(observer, hold)
     engine.check_finite_params(params, observer.name)
     if validate is not None:
         validate(params)
@@ -475,7 +484,7 @@ def _simulation(
     duration = check_duration(duration)
     window_start = check_window_start(window_start, duration)
     trace_every = check_count("trace_every", trace_every or 0)
-    engine.check_hold(hold)
+    hold = engine.hold_for(observer, hold)
     n_steps = whole_steps(duration, dt)
     if trace_every and engine.BLOCK % trace_every:
         raise ValueError(f"trace_every must divide {engine.BLOCK}, got {trace_every}")
@@ -501,7 +510,7 @@ def metrics_fn(
     dt: float,
     errors_fn: ErrorsFn,
     window_start: float = 0.0,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     windows=(),
     init_params: Optional[Callable] = None,
@@ -546,7 +555,7 @@ def simulate(
     run_index: int = 0,
     errors_fn: ErrorsFn,
     window_start: float = 0.0,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     trace_every: int = 1,
     trace_fn=None,
     dtype=None,
@@ -700,7 +709,7 @@ def monte_carlo(
     seed: int = 0,
     errors_fn: ErrorsFn,
     window_start: float = 0.0,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     chunk: int = 250,
     trace_every: int = 0,
     trace_fn=None,
@@ -720,7 +729,8 @@ def monte_carlo(
     ``init_params(params, key) -> params``: per-run parameters for ``observer.init`` only (e.g. a random initial
     estimate drawn from ``key``); must be a hashable callable (a module-level function), the jitted runner is
     cached on it. Run k's key is the same for every observer, so observers compared on the same seed see the
-    same noise and the same initial estimates.
+    same noise and the same initial estimates. ``hold``: the input of a step (:data:`jaxatt.types.HOLDS`); None:
+    the observer's own (``Observer.hold``), else "zoh".
 
     After each chunk ``on_chunk(partial_result)`` is called (save, progress). On KeyboardInterrupt the runs
     finished so far are returned with ``complete=False``: nothing computed is lost. ``previous``: the result of an

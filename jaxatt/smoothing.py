@@ -499,7 +499,7 @@ def passes_fn(
     n_steps: int,
     *,
     per_step_dt: bool = False,
-    hold: str = "next",
+    hold: Optional[str] = None,
     obs_dtype=None,
     trust: Callable = trust_of,
     seed_bias: bool = False,
@@ -510,6 +510,7 @@ def passes_fn(
     """``fn(params, item, lengths) -> Passes``: the forward and backward passes of ``observer`` over a batch of
     recordings (each pass one :func:`jaxatt.engine.batch_fn` scan over the whole batch), before the fusion.
     Arguments as :func:`smoother_fn`."""
+    hold = engine.hold_for(observer, hold, "next")
     run = engine.batch_fn(
         observer,
         engine.Recorded(int(n_steps), per_step_dt),
@@ -652,7 +653,7 @@ def smoother_fn(
     n_steps: int,
     *,
     per_step_dt: bool = False,
-    hold: str = "next",
+    hold: Optional[str] = None,
     obs_dtype=None,
     trust: Callable = trust_of,
     heading: bool = True,
@@ -672,7 +673,7 @@ def smoother_fn(
             must estimate the same rotation.
         n_steps: T - 1 (T the padded length).
         per_step_dt: ``item["dt"]`` is (B, T) (dt[k] = t_k - t_{k-1}, s) rather than a constant (B,).
-        hold: the observer's input per step (:data:`jaxatt.types.HOLDS`).
+        hold: the observer's input per step (:data:`jaxatt.types.HOLDS`); None: the observer's own, else "next".
         obs_dtype: the observer's arithmetic (and that of the fusion).
         trust: ``trust(out) -> (acc_trust, mag_trust)`` (:func:`trust_of`).
         heading: the estimate has an absolute heading (9D); False: fuse the inclination only
@@ -729,7 +730,7 @@ def broad_metric_fn(
     observer,
     trials,
     *,
-    hold: str = "next",
+    hold: Optional[str] = None,
     dtype=None,
     offline=True,
     heading: bool = True,
@@ -749,6 +750,7 @@ def broad_metric_fn(
 
     spec = resolve_offline(offline) or Offline()
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    hold = engine.hold_for(observer, hold, "next")
     padded = broad.pad_trials(trials)
     item = broad.batch_item(padded, dtype, run_params)
     lengths = jnp.asarray(padded.lengths)

@@ -194,6 +194,11 @@ class Observer(NamedTuple):
       time-reversed recording (the backward pass of the offline mode, :mod:`jaxatt.smoothing`), for params that
       change meaning when time runs backwards (a delay of one sensor behind another changes sign). Without it the
       backward pass uses the params unchanged.
+    * ``hold`` (optional): the input of a step the observer is written for (:data:`HOLDS`): "next" for a filter
+      that updates with each new sample (ahrs, VQF), "zoh" or "linear" for a continuous-time observer. Every
+      runner uses it unless given a hold of its own; None (an observer that declares none): "next" at the front
+      door (:func:`jaxatt.filter`, :func:`jaxatt.broad_score`, :func:`jaxatt.fit`, :func:`jaxatt.monte_carlo`),
+      "zoh" in :mod:`jaxatt.montecarlo`, :mod:`jaxatt.engine` and the losses (:func:`jaxatt.engine.hold_for`).
 
     Gains live in the ``params`` pytree passed to every call, never in the closure, so ``jax.grad`` over gains
     and ``jax.vmap`` over seeds or gain grids need nothing more.
@@ -204,3 +209,4 @@ class Observer(NamedTuple):
     name: str = "observer"
     output: Optional[Callable[[Any, Any], Any]] = None
     time_reversed: Optional[Callable[[Any], Any]] = None
+    hold: Optional[str] = None

@@ -79,7 +79,7 @@ def main():
             ob,
             engine.Recorded(n_steps, False),
             engine.records_of(lambda t, truth, o: o.q, 1),
-            hold=entry.hold,
+            hold=registry.hold_of(entry),
             obs_dtype=np.dtype("float32"),
         )
         t0 = time.perf_counter()

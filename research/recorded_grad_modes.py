@@ -38,7 +38,7 @@ trials = broad.load(data_dir, broad.list_trials(data_dir)[:n])
 entry = registry.get("robust")
 obs = registry.recorded_observer(entry)
 kw = {"none": {}, "step": {"step_remat": True}, "segment": {"checkpoint": "auto"}}[mode]
-fn, item = broad.metric_batch(obs, trials, hold=entry.hold, dtype="float32", **kw)
+fn, item = broad.metric_batch(obs, trials, hold=registry.hold_of(entry), dtype="float32", **kw)
 p = entry.default_params(jnp.float32)
 vg = jax.jit(jax.value_and_grad(lambda p, item: jnp.mean(fn(p, item)["total_rmse_deg"])))
 t = time.perf_counter(); v, g = jax.block_until_ready(vg(p, item)); first = time.perf_counter() - t

@@ -332,6 +332,24 @@ def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log(tmp_path
     assert res.per_run["mean_angle_error_deg"][0] == pytest.approx(err[window].mean(), rel=1e-9)
 
 
+@pytest.mark.parametrize("name", ["madgwick", "mahony"])
+def test_montecarlo_run_of_a_registered_filter_gives_jaxatt_filters_estimates(name):
+    """An Observer carries the hold it is written for (``Observer.hold``) and every runner uses it: the low-level
+    montecarlo.run of a registered filter's Observer gives jaxatt.filter's estimates. It used to hold each sample
+    over the step after it ("zoh") where the filter updates with it ("next"): 0.45 deg apart on Madgwick."""
+    samples, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=5.0, dt=0.01, seed=2)
+    e = registry.get(name)
+    p = e.params(dtype=jnp.float64)
+    est = jaxatt.filter(name, samples.gyr, samples.acc, samples.mag, dt=0.01, params=p)
+    r_filter = so3.quat_to_matrix(jnp.asarray(est.quat))
+
+    def gap_deg(out):
+        return float(np.rad2deg(np.max(so3.angle_error(r_filter, so3.quat_to_matrix(engine.estimate_q(out))))))
+
+    assert gap_deg(montecarlo.run(e.make(), p, samples, 0.01)) < 1e-9
+    assert gap_deg(montecarlo.run(e.make(), p, samples, 0.01, hold="zoh")) > 1e-2  # a hold given still wins
+
+
 def test_the_estimate_is_read_from_q_everywhere_when_an_output_also_has_r():
     """An output with a diagnostic ``r`` beside its estimate ``q`` (here a (3,) residual): the Monte Carlo scores
     ``q`` as jaxatt.filter does (it scored ``r``, or failed in the scan when ``r`` was not 3x3)."""
@@ -994,7 +1012,6 @@ def _filter_scan(name: str, n_run: int):
         registry.recorded_observer(e),
         engine.Recorded(n_run - 1, False),
         engine.records_of(jaxatt.api._pick_all, 1),
-        hold=e.hold,
         obs_dtype=np.dtype(np.float64),
     )
 
@@ -1099,6 +1116,15 @@ def test_a_duration_of_whole_float32_steps_is_accepted_and_a_fit_refuses_a_fract
         montecarlo.whole_steps(1.0, 0.3)
     with pytest.raises(ValueError, match=r"duration \(4 s\) must be a whole number of steps of dt = 0.3 s"):
         jaxatt.fit(None, None, "complementary", steps=1, config={"duration": 4.0, "dt": 0.3}, train_runs=2, val_runs=0)
+    # the simulation loss is monte_carlo's simulation: the same steps, the same refusal (it rounded 4 s to 13 steps)
+    from jaxatt.fitting import losses
+
+    obs = registry.get("batista-so3").make()
+    with pytest.raises(ValueError, match=r"duration \(4 s\) must be a whole number of steps of dt = 0.3 s"):
+        losses.make_loss_fn(obs, duration=4.0, dt=0.3, spec=losses.LossSpec())
+    # an observer whose own hold is "next" (Madgwick) is refused by the simulation loss saying that it is its own
+    with pytest.raises(ValueError, match=r"got 'next' \(observer 'madgwick''s own hold: pass hold='zoh' or 'linear'\)"):
+        losses.make_loss_fn(registry.get("madgwick").make(), duration=1.0, dt=0.01, spec=losses.LossSpec())
 
 
 def test_an_interrupted_monte_carlo_warns_and_continues_from_its_result():

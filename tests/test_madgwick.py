@@ -139,7 +139,7 @@ def test_matches_ahrs_update_marg_on_broad_trial_01(trial01):
 def test_registry_entry_and_filter_frames():
     e = registry.get("madgwick")
     assert "madgwick" in registry.names(recorded=True)
-    assert e.module == "madgwick" and e.frame == "ENU" and e.hold == "next" and e.setup is None
+    assert e.module == "madgwick" and e.frame == "ENU" and registry.hold_of(e) == "next" and e.setup is None
     assert [g.field for g in e.gains] == ["beta"] and e.gain("beta").constraint == "positive"
     assert registry.recorded_observer("madgwick") is madgwick.make_observer()
 

@@ -40,7 +40,11 @@ def test_entry_is_declared_by_its_module_and_consistent(name):
             assert g.bounds[0] <= float(np.min(v)) and float(np.max(v)) <= g.bounds[1], (name, g.field)
     for f in e.setup_fields:
         assert f in fields
-    assert e.frame in jaxatt.frames.FRAMES and e.hold in jaxatt.types.HOLDS
+    assert e.frame in jaxatt.frames.FRAMES and registry.hold_of(e) in jaxatt.types.HOLDS
+    # one hold per observer: the Observer carries its entry's (a runner given the Observer alone uses it)
+    assert e.make().hold in (None, registry.hold_of(e))
+    if e.recorded:
+        assert registry.recorded_observer(e).hold == registry.hold_of(e)
     # the parametrization of the declared gains round-trips the defaults
     bound = P.for_gains(e.gains).bind(p)
     back = bound.constrain(bound.init())
@@ -82,7 +86,7 @@ def test_gradient_through_a_recorded_run_matches_finite_differences(name, short_
     obs = registry.recorded_observer(e)
     p0 = e.default_params(dtype=jnp.float64)
     bound = P.for_gains(e.gains).bind(p0)
-    run = montecarlo.log_runner(obs, e.hold)
+    run = montecarlo.log_runner(obs)  # the observer's own hold
     rt = jnp.asarray(r_true)
 
     def loss(theta):

@@ -123,7 +123,7 @@ def test_registry_entries_and_filter_frames(batch):
     names, lens, dt, s = batch
     for name, mode in (("vqf", "9d"), ("vqf-6d", "6d")):
         e = registry.get(name)
-        assert e.module == "vqf" and e.frame == "ENU" and e.hold == "next" and e.setup is None
+        assert e.module == "vqf" and e.frame == "ENU" and registry.hold_of(e) == "next" and e.setup is None
         assert registry.recorded_observer(name) is vqf.make_observer(mode)
         assert e.gain("tau_acc").tuned
     assert registry.get("vqf").gain("tau_mag").tuned and registry.get("vqf-6d").needs == ("acc",)

@@ -655,7 +655,7 @@ def metric_batch(
     observer: Observer,
     trials: Sequence[Trial],
     *,
-    hold: str = "next",
+    hold: Optional[str] = None,
     dtype=None,
     step_remat: bool = False,
     checkpoint=None,
@@ -666,8 +666,10 @@ def metric_batch(
     the params. For gradients: ``checkpoint`` ("auto", a segment length in steps, None: off;
     :func:`jaxatt.engine.segment_length`) stores one state per segment and recomputes each segment in the reverse
     pass; ``step_remat`` rematerialises each step as well (least memory, slowest). ``run_params``: each trial's
-    own values of some params fields (:func:`batch_item`)."""
+    own values of some params fields (:func:`batch_item`). ``hold``: None, the observer's own, else "next"
+    (:func:`jaxatt.engine.hold_for`)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    hold = engine.hold_for(observer, hold, "next")
     padded = pad_trials(trials)
     n_steps = int(padded.samples.t.shape[1]) - 1
     fn = engine.compiled(
@@ -686,7 +688,7 @@ def metric_fn(
     observer: Observer,
     trials: Sequence[Trial],
     *,
-    hold: str = "next",
+    hold: Optional[str] = None,
     dtype=None,
     step_remat: bool = False,
     checkpoint=None,
@@ -706,7 +708,7 @@ def score(
     params,
     trials: Sequence[Trial],
     *,
-    hold: str = "next",
+    hold: Optional[str] = None,
     dtype=None,
     run_params: Optional[dict] = None,
 ) -> Dict[str, Dict[str, float]]:
@@ -714,7 +716,8 @@ def score(
 
     The observer's estimate k (T estimates for T samples: estimate 0 is ``init``'s from the first sample,
     :mod:`jaxatt.engine`) must be sensor-to-ENU (BROAD's frame) and is scored against ``opt_quat[k]``. ``hold``:
-    the input of each step ("next": sample k updates the estimate to t_k, as ahrs, VQF and BROAD's filters do).
+    the input of each step ("next": sample k updates the estimate to t_k, as ahrs, VQF and BROAD's filters do;
+    None: the observer's own, else "next").
     ``dtype``: the filter's arithmetic (default jax's default float); the metric is computed in float64 when x64
     is enabled. ``run_params``: each trial's own values of some params fields, ``{field: (B, ...)}``
     (:func:`jaxatt.api.recording_defaults_per_trial`).

@@ -454,7 +454,7 @@ def recorded_objective(
     bound: P.BoundParametrization,
     trials,
     *,
-    hold: str = "next",
+    hold: Optional[str] = None,
     dtype=None,
     step_remat: bool = False,
     checkpoint="auto",
@@ -981,7 +981,7 @@ def _fit(
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
     if entry is not None and entry.frame != "ENU":
         raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD trials hold sensor-to-ENU truth")
-    hold = engine.check_hold(hold or (entry.hold if entry is not None else "next"))
+    hold = engine.hold_for(obs, hold, "next")
     check_own_observer(obs, p0, entry, dt_, hold)
     check_own_estimate(obs, p0, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)
     objective, n, take = recorded_objective(

@@ -227,7 +227,7 @@ def make_loss_fn(
     duration: float,
     dt: float,
     spec: LossSpec,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     checkpoint: Union[str, int, bool, None] = "auto",
     init_params=None,
@@ -251,15 +251,16 @@ def make_loss_fn(
     once per observer and static settings, reused for new params, scenarios of the same structure and keys).
     ``devices``: split the runs of each call over these devices (:mod:`jaxatt.sharding`; None = every visible
     device; default 1 = one device); the number of keys must then be a multiple of the device count.
+    ``hold``: "zoh" or "linear"; None: the observer's own (``Observer.hold``), else "zoh".
     """
+    given = hold
+    hold = engine.hold_for(observer, hold)
     if hold not in ("zoh", "linear"):
-        raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}")
-    from ..montecarlo import check_dt  # the one check of a step (refuses True and "0.01")
+        own = "" if given else f" (observer {observer.name!r}'s own hold: pass hold='zoh' or 'linear')"
+        raise ValueError(f"hold must be 'zoh' or 'linear', got {hold!r}{own}")
+    from ..montecarlo import check_dt, check_duration, whole_steps  # monte_carlo's checks of the run's steps
 
-    dt = check_dt(dt)
-    n_steps = int(round(duration / dt))
-    if n_steps < 1:
-        raise ValueError(f"duration must be at least one step, got {duration} s with dt = {dt} s")
+    n_steps = whole_steps(check_duration(duration), check_dt(dt))
     obs_dtype, sim_dtype = _dtypes(dtype)
     segment = segment_length(n_steps, checkpoint)
     mesh = _sharding.seed_mesh(devices)
@@ -296,7 +297,7 @@ def simulation_loss(
     duration: float,
     dt: float,
     spec: Optional[LossSpec] = None,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     checkpoint="auto",
     init_params=None,

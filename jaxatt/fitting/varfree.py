@@ -501,13 +501,15 @@ def _probe(observer: Observer, hold: str, n: int, nc: int, initial, dt: float, d
 
 
 def tracked_coordinates(
-    observer: Observer, scenario, params, *, dt: float, hold: str = "zoh", track=None, dtype=None, initial=None
+    observer: Observer, scenario, params, *, dt: float, hold: Optional[str] = None, track=None, dtype=None, initial=None
 ):
     """(indices, names) of the coordinates of the flattened floating state that the noise can reach.
 
     ``track``: None (found from ``init`` and the first step: a coordinate is tracked if the noise moves it, or a
     tracked coordinate does, closed under the step's Jacobian), ``"all"`` (every floating coordinate) or field
-    names / leaf paths (coordinates whose name starts with one of them, e.g. ``("x1", "r_hat")``)."""
+    names / leaf paths (coordinates whose name starts with one of them, e.g. ``("x1", "r_hat")``). ``hold``: None,
+    the observer's own, else "zoh"."""
+    hold = engine.hold_for(observer, hold)
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
     scn = engine.cast_floats(scenario, dtype)
     p = engine.cast_floats(params, dtype)
@@ -652,7 +654,7 @@ def make_predict_fn(
     windows=(("all", 0.0, math.inf),),
     kind="angle_sq",
     errors_fn=None,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     checkpoint: Union[str, int, bool, None] = False,
     step_remat: Optional[bool] = None,
@@ -681,7 +683,7 @@ def make_predict_fn(
     dt, duration = check_dt(dt), check_duration(duration)
     n_steps = check_step_count(duration, dt)
     every = check_count("every", every)
-    engine.check_hold(hold)
+    hold = engine.hold_for(observer, hold)
     _check_kind(kind)
     wins = _windows(windows)
     last = max(w[2] for w in wins)
@@ -742,7 +744,7 @@ def predict(
     windows=(("all", 0.0, math.inf),),
     kind="angle_sq",
     errors_fn=None,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     track=None,
     every: int = 0,
@@ -823,7 +825,7 @@ def make_loss_fn(
     duration: float,
     dt: float,
     spec,
-    hold: str = "zoh",
+    hold: Optional[str] = None,
     dtype=None,
     checkpoint: Union[str, int, bool, None] = "auto",
     step_remat: Optional[bool] = None,

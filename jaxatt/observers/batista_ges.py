@@ -417,7 +417,7 @@ def make_observer(x1_init: str = "first_sample", vector: str = "mag") -> Observe
         close = (so3.orthogonality_error(s.r_hat) <= p.epsilon) & (so3.det3(s.r_hat) > 0)
         return Out(s.t, s.x1, s.x2, earth_rate_estimate(s.coef, s.x1, s.x2), s.r_hat, s.r_f, close)
 
-    return Observer(init=init, step=step, name="batista-ges", output=output)
+    return Observer(init=init, step=step, name="batista-ges", output=output, hold="zoh")
 
 
 def lyapunov_block1(p: Params, t, x1_err, x2_err):
@@ -466,7 +466,6 @@ ENTRIES = (
             ),
         ),
         frame="NED",
-        hold="zoh",
         needs=("mag",),
         module="batista_ges",
         check=check_params,

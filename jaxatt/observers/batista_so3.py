@@ -327,7 +327,7 @@ def make_observer(m_init: str = "rescaled", integrator: str = "lie", vector: str
         """The estimate held by ``s`` (omega_E^ with m^ standing in for the measurement)."""
         return Out(s.t, s.m_hat, s.v_hat, s.coef.c1 * s.m_hat - s.coef.c2 * s.v_hat, s.r)
 
-    return Observer(init=init, step=step, name="batista-so3", output=output)
+    return Observer(init=init, step=step, name="batista-so3", output=output, hold="zoh")
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -426,7 +426,6 @@ ENTRIES = (
             ),
         ),
         frame="NED",
-        hold="zoh",
         needs=("mag",),
         module="batista_so3",
         check=check_params,

@@ -251,7 +251,7 @@ def make_observer(init_mode: str = "triad") -> Observer:
         no = jnp.zeros((), bool)
         return Out(t=s.t, q=q_enu, r=so3.quat_to_matrix(q_enu), q_nwu=s.q, acc_used=no, mag_used=no)
 
-    return Observer(init, step, "madgwick", output)
+    return Observer(init, step, "madgwick", output, hold="next")
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -277,7 +277,6 @@ ENTRIES = (
             ),
         ),
         frame="ENU",
-        hold="next",
         module="madgwick",
         check=check_params,
         init_reads=("acc", "mag"),

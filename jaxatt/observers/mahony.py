@@ -41,7 +41,7 @@ Frames and conventions:
 
 Initial orientation (``make_observer(init_mode=...)``):
 
-* ``"broad"`` (default): exactly BROAD's ``quatFromAccMag(acc[0], mag[0])``: z = a, x = (z x -m) x z, y = z x x,
+* ``"broad"``: exactly BROAD's ``quatFromAccMag(acc[0], mag[0])``: z = a, x = (z x -m) x z, y = z x x,
   R0 = [x/|x|, y/|y|, z/|z|] (as columns), q0 = BROAD's ``quatFromRotMat(R0)`` (w >= 0, signs of the other
   components from the off-diagonal differences). R0's columns are the axes of a south-east-up frame written in
   sensor coordinates (an earth-to-sensor matrix), which the filter reads as sensor-to-NWU: with R the true
@@ -52,8 +52,8 @@ Initial orientation (``make_observer(init_mode=...)``):
   the magnetometer term; measured: still 177 deg off after 60 s with Kp = 2 and gyro noise). On BROAD the filter
   converges in the rest phase before the scored ``movement`` samples, and the published numbers include this
   start, so it is kept for reproduction. Use "triad" on other data.
-* ``"triad"``: the correct sensor-to-NWU orientation from the same two vectors (rows: north, west, up in sensor
-  coordinates), for users who want the filter to start converged.
+* ``"triad"`` (default; "broad" was the default up to jaxatt 0.2.0): the correct sensor-to-NWU orientation from
+  the same two vectors (rows: north, west, up in sensor coordinates), so that the filter starts converged.
 
 Missing samples (NaN in a log; also all-zero vectors, which the C code treats as missing):
 
@@ -335,12 +335,13 @@ def _update(q, integral, g, a, m, acc_ok, mag_ok, kp, ki, dt):
     return q_new, jnp.stack([ix, iy, iz]), w_mes
 
 
-def make_observer(init_mode: str = "broad") -> Observer:
+def make_observer(init_mode: str = "triad") -> Observer:
     """Mahony's explicit complementary filter with bias (MahonyAHRS.cpp as run by BROAD).
 
     Args:
-        init_mode: "broad" (BROAD's quatFromAccMag start, default: reproduces their numbers) or "triad"
-            (the correct sensor-to-NWU orientation from the first acc and mag samples).
+        init_mode: "triad" (default: the sensor-to-NWU orientation from the first acc and mag samples) or
+            "broad" (BROAD's quatFromAccMag start, which reproduces their numbers: 180 deg off for a level
+            sensor facing north, see the module docstring; the default up to jaxatt 0.2.0).
 
     Returns ``Observer(init, step, "mahony")`` with
     ``init(params, first_sample) -> State`` and ``step(params, state, sample, dt) -> (State, Out)``: the step
@@ -397,7 +398,7 @@ def make_observer(init_mode: str = "broad") -> Observer:
             mag_used=no,
         )
 
-    return Observer(init, step, "mahony", output)
+    return Observer(init, step, "mahony", output, hold="next")
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -427,7 +428,6 @@ ENTRIES = (
             registry.Gain("ki", "1/s^2", "integral (gyro-bias) gain Ki", "positive", True, (1e-7, 10.0)),
         ),
         frame="ENU",
-        hold="next",
         module="mahony",
         check=check_params,
         init_reads=("acc", "mag"),

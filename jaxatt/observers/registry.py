@@ -36,6 +36,8 @@ __all__ = [
     "builtin",
     "check_entry",
     "recorded_observer",
+    "hold_of",
+    "with_hold",
     "CONSTRAINTS",
     "first_sample_frame",
     "markdown_table",
@@ -92,8 +94,10 @@ class Entry(NamedTuple):
             given, in the frame and units of its paper).
         setup_fields: the Params fields ``setup`` fills.
         frame: navigation frame of ``Out.q`` / ``Out.r`` after ``setup`` ("ENU", "NED", "NWU").
-        hold: the input of a step on recorded data (:data:`jaxatt.types.HOLDS`): "next" for filters that update
-            with each new sample (ahrs, VQF, BROAD), "zoh" / "linear" for continuous-time observers.
+        hold: the input of a step (:data:`jaxatt.types.HOLDS`): "next" for filters that update with each new
+            sample (ahrs, VQF, BROAD), "zoh" / "linear" for continuous-time observers. None (the default): the
+            observer's own (``make().hold``), else "next" (:func:`hold_of`). jaxatt's observers declare it on the
+            Observer, so a runner given the Observer alone (:func:`jaxatt.montecarlo.run`) uses the same.
         needs: the ImuSample fields it needs besides gyr.
         shipped: a gains file of :mod:`jaxatt.data.gains` used instead of ``default_params`` when no params are
             given (e.g. the robust AHRS tuned on BROAD), or None.
@@ -126,7 +130,7 @@ class Entry(NamedTuple):
     setup: Optional[Callable[[Any, Any], Any]] = None
     setup_fields: Tuple[str, ...] = ()
     frame: str = "ENU"
-    hold: str = "next"
+    hold: Optional[str] = None
     needs: Tuple[str, ...] = ("acc", "mag")
     shipped: Optional[str] = None
     module: str = ""
@@ -259,8 +263,11 @@ def check_entry(entry) -> None:
         raise TypeError(f"{what}: make() must return a jaxatt.Observer, got {type(obs).__name__}")
     if entry.frame not in FRAMES:
         raise ValueError(f"{what}: frame must be one of {', '.join(FRAMES)}, got {entry.frame!r}")
-    if entry.hold not in HOLDS:
-        raise ValueError(f"{what}: hold must be one of {', '.join(HOLDS)}, got {entry.hold!r}")
+    for where, hold in (("hold", entry.hold), ("make().hold", obs.hold)):
+        if hold is not None and hold not in HOLDS:
+            raise ValueError(f"{what}: {where} must be one of {', '.join(HOLDS)}, got {hold!r}")
+    if entry.hold is not None and obs.hold is not None and entry.hold != obs.hold:
+        raise ValueError(f"{what}: hold {entry.hold!r} differs from its observer's own ({obs.hold!r}): give it once")
     if not isinstance(entry.needs, tuple) or not set(entry.needs) <= {"acc", "mag"}:
         raise ValueError(f"{what}: needs must be a tuple of 'acc' / 'mag', got {entry.needs!r}")
     if not isinstance(entry.gains, tuple) or not all(isinstance(g, Gain) for g in entry.gains):
@@ -326,10 +333,21 @@ def _wrap(base: Observer, setup: Callable, fields: Tuple[str, ...], name: str) -
 
     if base.output is None:
         raise ValueError(f"observer {name!r} needs an output(params, state) function to be set up for recorded data")
-    return Observer(init, step, name, output, base.time_reversed)  # same params type: same time reversal
+    return Observer(init, step, name, output, base.time_reversed, base.hold)  # same params type: same time reversal
 
 
 _WRAPPED: Dict[Any, Observer] = {}
+
+
+def hold_of(entry) -> str:
+    """The hold of ``entry`` (a name or :class:`Entry`): its own ``hold``, else its observer's, else "next"."""
+    e = get(entry)
+    return e.hold or e.make().hold or "next"
+
+
+def with_hold(entry, observer: Observer) -> Observer:
+    """``observer`` carrying the hold of ``entry`` (:func:`hold_of`) when it declares none."""
+    return observer if observer.hold is not None else observer._replace(hold=hold_of(entry))
 
 
 def recorded_observer(entry) -> Observer:
@@ -344,11 +362,11 @@ def recorded_observer(entry) -> Observer:
             "its paper): pass the Observer and its params yourself"
         )
     if e.setup is None:
-        return e.make()
+        return with_hold(e, e.make())
     try:  # by the entry, not its name: a changed or re-registered entry gets its own
         key: Any = (e, hash(e))[0]
     except TypeError:  # an unregistered entry holding a list
         key = e.name
     if key not in _WRAPPED:
-        _WRAPPED[key] = _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name)
+        _WRAPPED[key] = with_hold(e, _wrap(e.make(), e.setup, tuple(e.setup_fields), e.name))
     return _WRAPPED[key]

@@ -776,7 +776,7 @@ def _time_reversed(p: Params) -> Params:
     return p._replace(mag_delay=-p.mag_delay)
 
 
-_OBSERVER = Observer(_init, _step, "robust_ahrs", _output, _time_reversed)
+_OBSERVER = Observer(_init, _step, "robust_ahrs", _output, _time_reversed, hold="next")
 
 
 def make_observer() -> Observer:
@@ -915,7 +915,6 @@ ENTRIES = (
             for f in PARAM_NAMES
         ),
         frame="ENU",
-        hold="next",
         shipped="robust_broad_all.json",
         module="robust_ahrs",
         check=check_params,

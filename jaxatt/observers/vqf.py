@@ -903,7 +903,7 @@ def make_observer(mode: str = "9d") -> Observer:
         yes = jnp.ones((), bool)
         return _out(s, use_mag, yes, yes if use_mag else ~yes, bias_p0(p, s.gyr_quat.dtype))
 
-    return Observer(init, step, "vqf" if use_mag else "vqf-6d", output)
+    return Observer(init, step, "vqf" if use_mag else "vqf-6d", output, hold="next")
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -978,7 +978,6 @@ ENTRIES = (
         )
         + _GAINS_6D[1:],
         frame="ENU",
-        hold="next",
         module="vqf",
         check=check_params,
         first_step="ts0",
@@ -992,7 +991,6 @@ ENTRIES = (
         default_params=lambda dtype=None: default_params(dtype=dtype),
         gains=_GAINS_6D,
         frame="ENU",
-        hold="next",
         needs=("acc",),
         module="vqf",
         check=check_params,

@@ -126,7 +126,7 @@ class AhrsStudy(base.Study):
     def hold(self, cfg) -> str:
         from ..observers import registry
 
-        return registry.get(cfg.observer).hold
+        return registry.hold_of(cfg.observer)
 
     def notes(self, cfg, gains_file=None):
         """The set-up in words; ``gains_file``: the gains file the filter runs with (``jaxatt simulate --gains``)."""
