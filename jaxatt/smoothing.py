@@ -298,20 +298,9 @@ def uncertainty(trust, dt, tau, start):
     return jnp.concatenate([p0[..., None], jnp.moveaxis(ps, 0, -1)], axis=-1)
 
 
-def quat_exp(v):
-    """Unit quaternion (w, x, y, z) of a rotation vector v (..., 3) (rad); gradient-safe at 0."""
-    th2 = jnp.sum(v * v, axis=-1)
-    small = th2 < 1e-12
-    th = jnp.sqrt(jnp.where(small, 1.0, th2))
-    half = 0.5 * th
-    c = jnp.where(small, 1.0 - th2 / 8.0, jnp.cos(half))
-    s = jnp.where(small, 0.5 - th2 / 48.0, jnp.sin(half) / th)
-    return jnp.concatenate([c[..., None], s[..., None] * v], axis=-1)
-
-
-def quat_log(q):
-    """Rotation vector (..., 3) (rad, angle in [0, pi]) of a unit quaternion (w, x, y, z) (either sign)."""
-    return 2.0 * so3._quat_log_half(so3.quat_canonical(q))
+#: :func:`jaxatt.so3.quat_exp` and :func:`jaxatt.so3.quat_log`, under the names this module has always exported
+quat_exp = so3.quat_exp
+quat_log = so3.quat_log
 
 
 def fuse(q_f, q_b, w_incl, w_head):

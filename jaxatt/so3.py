@@ -39,6 +39,8 @@ __all__ = [
     "quat_multiply",
     "quat_conjugate",
     "quat_canonical",
+    "quat_exp",
+    "quat_log",
     "nearest_rotation",
     "polar_newton",
     "polar_tangent",
@@ -301,6 +303,23 @@ def quat_canonical(q: jax.Array) -> jax.Array:
     """The representative of +-q with w >= 0, for (..., 4) (w, x, y, z) quaternions."""
     check_shape(q, "quat_canonical: q", (4,))
     return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def quat_exp(v: jax.Array) -> jax.Array:
+    """Unit quaternion (w, x, y, z) of a rotation vector v (..., 3) (rad): [cos(|v|/2), sin(|v|/2) v/|v|];
+    gradient-safe at 0."""
+    th2 = jnp.sum(v * v, axis=-1)
+    small = th2 < 1e-12
+    th = jnp.sqrt(jnp.where(small, 1.0, th2))
+    half = 0.5 * th
+    c = jnp.where(small, 1.0 - th2 / 8.0, jnp.cos(half))
+    s = jnp.where(small, 0.5 - th2 / 48.0, jnp.sin(half) / th)
+    return jnp.concatenate([c[..., None], s[..., None] * v], axis=-1)
+
+
+def quat_log(q: jax.Array) -> jax.Array:
+    """Rotation vector (..., 3) (rad, angle in [0, pi]) of a unit quaternion (w, x, y, z) (either sign)."""
+    return 2.0 * _quat_log_half(quat_canonical(q))
 
 
 # --------------------------------------------------------------------------------------------------------

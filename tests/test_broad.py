@@ -609,7 +609,8 @@ def test_every_broad_trial_passes_the_trial_check():
 
 def test_the_gyro_units_check_tells_rad_from_deg_on_every_broad_trial():
     """api.gyro_rotation_ratio (the front door's deg/s warning, needing no filter) on real data: every trial's gyro
-    as recorded (rad/s) turns well under 5x as far as its acc-mag frame, the same gyro in deg/s well over 5x."""
+    as recorded (rad/s) turns well under 5x and well over api.LOW_ROTATION_RATIO (0.05) times as far as its acc-mag
+    frame, the same gyro in deg/s well over 5x and in rad/s converted again (/57) under the low ratio."""
     from jaxatt import api
 
     need_data()
@@ -617,7 +618,8 @@ def test_the_gyro_units_check_tells_rad_from_deg_on_every_broad_trial():
         g, a, m, t = (np.asarray(x) for x in (tr.samples.gyr, tr.samples.acc, tr.samples.mag, tr.samples.t))
         rad, deg = api.gyro_rotation_ratio(g, a, m, t), api.gyro_rotation_ratio(np.rad2deg(g), a, m, t)
         assert rad is not None and deg is not None, tr.name
-        assert 0.1 < rad < 2.5 and deg > 12.0, (tr.name, rad, deg)
+        assert 2 * api.LOW_ROTATION_RATIO < rad < 2.5 and deg > 12.0, (tr.name, rad, deg)
+        assert rad / np.rad2deg(1.0) < api.LOW_ROTATION_RATIO, (tr.name, rad)
         np.testing.assert_allclose(deg / rad, np.rad2deg(1.0), rtol=1e-9)  # the same windows, scaled
 
 

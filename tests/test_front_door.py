@@ -957,6 +957,10 @@ def test_the_gyro_units_check_sees_fast_spins_slow_sensors_and_dropouts_right():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         jaxatt.filter("madgwick", g, a, m, dt=0.01)
+    # a gyro already in rad/s, declared in deg/s, is converted a second time (57x too small): said (was silent)
+    g, a, m = _spin(0.5)
+    with pytest.warns(UserWarning, match=r"the gyro turns 0.017\dx as far .*: is gyr converted twice"):
+        jaxatt.filter("madgwick", g, a, m, dt=0.01, gyr_unit="deg/s")
 
 
 @pytest.mark.parametrize("name", ["nlo", "madgwick"])
@@ -1620,15 +1624,42 @@ def test_register_refuses_an_unusable_entry_naming_the_field(change, error, matc
         registry.register(MY_OBSERVER)
 
 
-def test_fit_on_trials_refuses_an_observer_estimating_in_another_frame():
-    """broad_score refuses an observer whose estimates are not sensor-to-ENU; the fit on trials (ENU truth) did
-    not, and tuned it against the wrong frame."""
+def test_a_registered_observer_estimating_in_nwu_is_scored_in_its_own_frame():
+    """Madgwick reporting its sensor-to-NWU quaternion, registered with frame="NWU", scores as the built-in (ENU)
+    in jaxatt.monte_carlo (it scored 89 deg: the ENU truth against the NWU estimate), broad_score and fit (they
+    refused it, though filter converts it)."""
+    inner = registry.get("madgwick").make()
+
+    def nwu(out):
+        return out._replace(q=out.q_nwu, r=so3.quat_to_matrix(out.q_nwu))
+
+    def step(p, s, u, dt):
+        s, out = inner.step(p, s, u, dt)
+        return s, nwu(out)
+
+    obs = Observer(inner.init, step, "_madgwick_nwu", lambda p, s: nwu(inner.output(p, s)), None, inner.hold)
+    entry = registry.get("madgwick")._replace(name="_madgwick_nwu", make=lambda: obs, frame="NWU", module="")
+    samples, truth = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=5.0, dt=0.01, seed=1)
+    n = len(samples.t)
+    q_true = np.asarray(so3.matrix_to_quat(truth.r))
+    trial = broad.Trial("01_sim", ImuSample(*(np.asarray(x) for x in samples)), q_true, np.ones(n, bool), 100.0)
     try:
-        registry.register(_my_entry("_ned", frame="NED"))
-        with pytest.raises(ValueError, match="'_ned' estimates in NED; BROAD trials hold sensor-to-ENU truth"):
-            jaxatt.fit("_ned", None, [_tiny_trial()], steps=1)
+        registry.register(entry)
+        for name in ("madgwick", "_madgwick_nwu"):
+            assert registry.get(name).frame == ("NWU" if name != "madgwick" else "ENU")
+        mc = [
+            jaxatt.monte_carlo(m, runs=2, duration=5.0).per_run["mean_angle_error_deg"]
+            for m in ("madgwick", "_madgwick_nwu")
+        ]
+        np.testing.assert_allclose(mc[1], mc[0], rtol=1e-9)
+        assert np.all(mc[0] < 5.0)
+        score = [jaxatt.broad_score(m, None, [trial]).trials["01_sim"] for m in ("madgwick", "_madgwick_nwu")]
+        assert score[0].total_rmse_deg < 5.0
+        np.testing.assert_allclose(score[1][:3], score[0][:3], rtol=1e-9)
+        fits = [jaxatt.fit(m, None, [trial], val=[trial], steps=0).start_loss for m in ("madgwick", "_madgwick_nwu")]
+        assert fits[1] == pytest.approx(fits[0], rel=1e-9)
     finally:
-        registry._EXTRA.pop("_ned", None)
+        registry._EXTRA.pop("_madgwick_nwu", None)
 
 
 def test_a_fit_that_stops_on_non_finite_losses_warns():

@@ -161,6 +161,23 @@ def test_exp_matches_power_series(rng):
         np.testing.assert_allclose(got, ref, atol=2e-15 * max(1.0, np.linalg.norm(phi)) * 4, rtol=0)
 
 
+def test_quat_exp_and_log_are_the_matrix_exp_and_log(rng):
+    """so3.quat_exp (one copy: the MEKF and the smoother use it) is the quaternion of the power series' matrix
+    exponential, and so3.quat_log its inverse with the angle in [0, pi], for either sign of q."""
+    dirs = rng.standard_normal((20, 3))
+    phis = list(dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * rng.uniform(0, PI - 1e-3, (20, 1)))
+    phis += [th * ax for th, ax in itertools.product([0.0, 1e-9, 1e-7, 1e-3, PI - 1e-6], AXES[:4])]
+    for phi in phis:
+        q = J.quat_exp(jnp.asarray(phi))
+        assert abs(float(jnp.linalg.norm(q)) - 1.0) < 1e-15
+        ref = np_expm_series(np_skew(phi))
+        np.testing.assert_allclose(np.asarray(J.quat_to_matrix(q)), ref, atol=1e-14, rtol=0)
+        np.testing.assert_allclose(np.asarray(J.quat_log(q)), phi, atol=1e-13 * max(1.0, np.linalg.norm(phi)))
+        np.testing.assert_allclose(np.asarray(J.quat_log(-q)), phi, atol=1e-13 * max(1.0, np.linalg.norm(phi)))
+    g = jax.grad(lambda v: J.quat_exp(v)[1])(jnp.zeros(3))  # finite at 0: d(x)/dv = [1/2, 0, 0]
+    np.testing.assert_allclose(np.asarray(g), [0.5, 0.0, 0.0], atol=1e-15)
+
+
 def test_exp_is_rotation_about_axis(rng):
     for th, ax in itertools.product(SPECIAL_ANGLES, AXES):
         r = np.asarray(J.exp(jnp.asarray(th * ax)))

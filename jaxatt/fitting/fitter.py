@@ -952,6 +952,7 @@ def _fit(
         resolve_observer,
         trial_arrays,
         trials_start_from_valid,
+        truth_in_frame_of,
     )
     from ..data import broad as B
 
@@ -970,8 +971,8 @@ def _fit(
     # one params for every trial: the data-dependent defaults are the trials' median (so FitResult.params, scored
     # with broad_score, gives the fit's own loss); trials far from it are warned about
     p0 = recording_defaults_for_trials(entry, params, p0, trials, warn=start is None)  # start= may set them
-    trials = trials_start_from_valid(entry, trials)
-    val_trials = trials_start_from_valid(entry, val_trials)
+    trials = trials_start_from_valid(entry, truth_in_frame_of(entry, trials))
+    val_trials = trials_start_from_valid(entry, truth_in_frame_of(entry, val_trials))
     p0 = jax.tree_util.tree_map(
         lambda a: jnp.asarray(a, dt_) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a,
         _start(p0, start, entry),
@@ -979,8 +980,6 @@ def _fit(
     if entry is not None and entry.check is not None:
         entry.check(p0)
     bound = _parametrization(entry, p0, tune=tune, freeze=freeze, masks=masks, method=method, transforms=transforms)
-    if entry is not None and entry.frame != "ENU":
-        raise ValueError(f"observer {name!r} estimates in {entry.frame}; BROAD trials hold sensor-to-ENU truth")
     hold = engine.hold_for(obs, hold, "next")
     check_own_observer(obs, p0, entry, dt_, hold)
     check_own_estimate(obs, p0, entry, trials[0].samples, 1.0 / float(trials[0].rate_hz), dt_, hold)

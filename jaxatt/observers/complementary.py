@@ -454,10 +454,10 @@ def _as_vector_sample(u, p: Params, imu_fields: tuple) -> VectorSample:
 
 
 def _row_ok(*vs):
-    ok = None
-    for v in vs:
-        o = jnp.all(jnp.isfinite(v), axis=-1) & (jnp.sum(jnp.where(jnp.isfinite(v), v, 0.0) ** 2, axis=-1) > 0)
-        ok = o if ok is None else ok & o
+    """True where every one of ``vs`` (..., 3) is present (:func:`jaxatt.so3.present`)."""
+    ok = so3.present(vs[0])
+    for v in vs[1:]:
+        ok = ok & so3.present(v)
     return ok
 
 

@@ -168,14 +168,8 @@ def check_params(p: Params) -> None:
 
 
 # ------------------------------------------------------------------------------------------------------
-def quat_exp(phi):
-    """Unit quaternion (w, x, y, z) of the rotation vector ``phi`` (rad): [cos(|phi|/2), sin(|phi|/2) phi/|phi|]."""
-    th2 = jnp.sum(phi * phi, axis=-1, keepdims=True)
-    small = th2 < 1e-12
-    th = jnp.sqrt(jnp.where(small, 1.0, th2))
-    s = jnp.where(small, 0.5 - th2 / 48.0, jnp.sin(0.5 * th) / th)
-    c = jnp.where(small, 1.0 - th2 / 8.0, jnp.cos(0.5 * th))
-    return jnp.concatenate([c, s * phi], axis=-1)
+#: :func:`jaxatt.so3.quat_exp` (rad -> (w, x, y, z)), under the name this module has always exported
+quat_exp = so3.quat_exp
 
 
 def _qnorm(q):
