@@ -825,8 +825,9 @@ def filter(
         params: gains (default for a registered observer: its shipped gains or defaults; a gains-file path is
             read; a dict such as ``{"beta": 0.05}`` replaces those fields of the defaults); required for your own
             observer.
-        frame: navigation frame of the returned quaternions ("ENU", "NED", "NWU"): registered observers are
-            converted to it; for your own observer it only labels the estimate (no conversion).
+        frame: navigation frame of the returned quaternions ("ENU", "NED", "NWU"; north is magnetic north, no
+            declination applied): registered observers are converted to it; for your own observer it only labels
+            the estimate (no conversion).
         hold: the input of each step (:data:`jaxatt.types.HOLDS`; default the observer's, "next" for your own:
             sample k updates the estimate to t_k, as ahrs and VQF do).
         dtype: "float32" / "float64" (default: from the input, see the module docstring).

@@ -308,8 +308,9 @@ def _parser() -> _Parser:
         choices=FRAMES,
         type=str.upper,
         default="ENU",
-        help="navigation frame of the written quaternions (default ENU): a registered observer's estimate is "
-        "converted to it; your own observer's (module:attr) is written as it is and only labelled with it",
+        help="navigation frame of the written quaternions and rotation matrices (default ENU; north is magnetic "
+        "north, no declination applied): a registered observer's estimate is converted to it; your own "
+        "observer's (module:attr) is written as it is and only labelled with it",
     )
     fp.add_argument(
         "--dt",
@@ -1273,6 +1274,33 @@ def _observer_and_params(args):
     return args.observer, args.gains
 
 
+#: Outputs of jaxatt's observers that are sensor-to-navigation attitudes in the observer's own frame (also with
+#: ``backward_`` before them: the offline mode's backward pass); ``jaxatt filter --frame`` writes them in its frame,
+#: as the estimate. Outputs named with a frame (``q_nwu``) and gains (``k1``) are written as they are.
+ATTITUDE_OUTPUTS = ("q", "r", "q6d", "q9d", "r_hat")
+
+
+def _observer_frame(observer, frame: str) -> str:
+    """The navigation frame of a registered observer's outputs; ``frame`` for one of your own (as given)."""
+    from .observers import registry
+
+    return registry.get(observer).frame if isinstance(observer, str) else frame
+
+
+def _in_frame(name: str, v, frame: str, own: str):
+    """Output ``name`` (T, 4) / (T, 3, 3) in ``frame`` when it is an attitude in the observer's frame ``own``."""
+    from . import frames
+
+    base = name[len("backward_") :] if name.startswith("backward_") else name
+    if frame == own or base not in ATTITUDE_OUTPUTS or not np.issubdtype(v.dtype, np.floating):
+        return v
+    if v.ndim == 2 and v.shape[1] == 4:
+        return frames.change_frame(v, frame, own)
+    if v.ndim == 3 and v.shape[1:] == (3, 3):
+        return np.einsum("ij,tjk->tik", frames.frame_rotation(frame, own), v)
+    return v
+
+
 def _filter(args) -> int:
     from . import api, io
 
@@ -1316,10 +1344,11 @@ def _filter(args) -> int:
             offline=args.offline,
         )
     cols, names = [est.t, est.quat[:, 0], est.quat[:, 1], est.quat[:, 2], est.quat[:, 3]], ["t", "qw", "qx", "qy", "qz"]
+    own_frame = _observer_frame(observer, args.frame)
     for k, v in est.outputs.items():
         if k in ("t", "q", "r"):
             continue
-        v = np.asarray(v)
+        v = _in_frame(k, np.asarray(v), args.frame, own_frame)
         if v.ndim == 1:
             cols.append(v.astype(float))
             names.append(k)

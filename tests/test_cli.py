@@ -265,6 +265,18 @@ def test_filter_command_writes_estimates_of_a_log(tmp_path, capsys):
     ned = np.genfromtxt(out2, delimiter=",", names=True)
     q_ned = np.column_stack([ned[c] for c in ("qw", "qx", "qy", "qz")])
     np.testing.assert_allclose(q_ned, jaxatt.frames.change_frame(est.quat, "NED", "ENU"), atol=1e-15)
+    # --offline --frame NED: every attitude column in NED, the backward pass's too (it was written in ENU beside
+    # the NED estimate); q_nwu, named with its frame, as it is
+    argv = ["filter", "--log", str(log), "--observer", "mahony", "--frame", "NED", "--offline", "--out", str(out2)]
+    assert cli.main(argv) == 0
+    ned = np.genfromtxt(out2, delimiter=",", names=True)
+    off = jaxatt.filter("mahony", samples.gyr, samples.acc, samples.mag, t=samples.t, offline=True)  # ENU
+    for k in ("backward_q", "q_forward", "q_nwu"):
+        want = off.outputs[k] if k == "q_nwu" else jaxatt.frames.change_frame(off.outputs[k], "NED", "ENU")
+        np.testing.assert_allclose(np.column_stack([ned[f"{k}_{ax}"] for ax in "wxyz"]), want, atol=1e-12)
+    r_back = np.stack([np.stack([ned[f"backward_r_{i}{j}"] for j in range(3)], -1) for i in range(3)], -2)
+    want_r = jaxatt.frames.frame_rotation("NED", "ENU") @ off.outputs["backward_r"]
+    np.testing.assert_allclose(r_back, want_r, atol=1e-12)
     # an output that cannot be written (a full disk: /dev/full): one line naming it, exit 2, no traceback
     if Path("/dev/full").exists():
         capsys.readouterr()
