@@ -26,7 +26,7 @@ from typing import List, Mapping, Optional
 
 import numpy as np
 
-from .frames import ACC_UNITS, FRAMES, GYR_UNITS, TIME_UNITS
+from .frames import ACC_UNITS, FRAMES, GYR_UNITS, TIME_UNITS, unit_spelling
 from .types import MAX_RUNS, check_seed
 
 __all__ = ["main"]
@@ -201,13 +201,21 @@ def _trial_source_flags(p: argparse.ArgumentParser):
     )
     p.add_argument("--columns", default=None, help="--logs: the CSV logs' own column names, e.g. t=time,gyr_x=GyroX")
     p.add_argument(
-        "--gyr-unit", choices=GYR_UNITS, type=str.lower, default=None, help="--logs: unit of the gyro columns (rad/s)"
+        "--gyr-unit",
+        choices=GYR_UNITS,
+        type=unit_spelling,
+        default=None,
+        help="--logs: unit of the gyro columns (rad/s)",
     )
     p.add_argument(
-        "--acc-unit", choices=ACC_UNITS, type=str.lower, default=None, help="--logs: unit of the accelerometer (m/s^2)"
+        "--acc-unit",
+        choices=ACC_UNITS,
+        type=unit_spelling,
+        default=None,
+        help="--logs: unit of the accelerometer (m/s^2)",
     )
     p.add_argument(
-        "--time-unit", choices=TIME_UNITS, type=str.lower, default=None, help="--logs: unit of the t column (s)"
+        "--time-unit", choices=TIME_UNITS, type=unit_spelling, default=None, help="--logs: unit of the t column (s)"
     )
     p.add_argument("--dt", type=_positive, default=None, help="--logs: the sample period (s) of logs without t")
 
@@ -321,21 +329,21 @@ def _parser() -> _Parser:
     fp.add_argument(
         "--gyr-unit",
         choices=GYR_UNITS,
-        type=str.lower,
+        type=unit_spelling,
         default="rad/s",
         help="unit of the log's gyro columns (default rad/s)",
     )
     fp.add_argument(
         "--acc-unit",
         choices=ACC_UNITS,
-        type=str.lower,
+        type=unit_spelling,
         default="m/s^2",
         help="unit of the log's accelerometer columns (default m/s^2)",
     )
     fp.add_argument(
         "--time-unit",
         choices=TIME_UNITS,
-        type=str.lower,
+        type=unit_spelling,
         default="s",
         help="unit of the log's t column (default s); the estimates' t is written in s",
     )
@@ -531,7 +539,11 @@ def _parser() -> _Parser:
         help="the CSV log's own column names, e.g. t=time,acc_x=AccX,... (the format's names: t, gyr_*, acc_*, mag_*)",
     )
     ep.add_argument(
-        "--time-unit", choices=TIME_UNITS, type=str.lower, default=None, help="unit of the log's t column (default s)"
+        "--time-unit",
+        choices=TIME_UNITS,
+        type=unit_spelling,
+        default=None,
+        help="unit of the log's t column (default s)",
     )
     ep.add_argument("--duration", type=_positive, default=None, help="simulated duration of a scenario, s (60)")
     ep.add_argument("--dt", type=_positive, default=None, help="sample period of a scenario, s (0.01)")
@@ -543,7 +555,7 @@ def _parser() -> _Parser:
         help="log: magnetic reference in the log's navigation frame (any unit; only its direction is used)",
     )
     ep.add_argument(
-        "--frame", choices=["NED", "ENU"], type=str.upper, default=None, help="log: navigation frame of --mag-ref (NED)"
+        "--frame", choices=FRAMES, type=str.upper, default=None, help="log: navigation frame of --mag-ref (NED)"
     )
     ep.add_argument(
         "--threshold",

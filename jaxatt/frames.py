@@ -44,6 +44,7 @@ __all__ = [
     "ACC_UNITS",
     "TIME_UNITS",
     "unit_factor",
+    "unit_spelling",
     "to_si",
     "deg_s_to_rad_s",
     "rad_s_to_deg_s",
@@ -76,13 +77,39 @@ TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 _UNIT_TABLES = {"gyr_unit": GYR_UNITS, "acc_unit": ACC_UNITS, "time_unit": TIME_UNITS}
 
 
+def unit_spelling(unit):
+    """``unit`` as the tables spell it, whatever its case and common variants: "DEG/S", "°/s", "deg/sec" ->
+    "deg/s"; "m/s²", "m/s/s", "m/s**2" -> "m/s^2"; "µs", "usec" -> "us"; "sec" -> "s". Anything else as it is
+    (lower case)."""
+    if not isinstance(unit, str):
+        return unit
+    u = unit.strip().lower().replace(" ", "")
+    for old, new in (
+        ("°", "deg"),
+        ("²", "^2"),
+        ("**", "^"),
+        ("µ", "u"),
+        ("μ", "u"),
+        ("degrees", "deg"),
+        ("degree", "deg"),
+        ("radians", "rad"),
+        ("/sec", "/s"),
+    ):
+        u = u.replace(old, new)
+    if u.endswith("/s/s"):
+        u = u[:-4] + "/s^2"
+    if u.endswith("sec") and u[:-3] in ("", "m", "u", "n"):
+        u = u[:-3] + "s"
+    return u
+
+
 def unit_factor(argument: str, unit: str) -> float:
     """The factor from ``unit`` to jaxatt's unit for ``argument`` ("gyr_unit", "acc_unit" or "time_unit");
     ValueError (one line naming the argument and its choices) otherwise."""
     table = _UNIT_TABLES.get(argument)
     if table is None:
         raise ValueError(f"unit argument must be one of {', '.join(_UNIT_TABLES)}, got {argument!r}")
-    key = unit.strip().lower() if isinstance(unit, str) else None  # "DEG/S", "G", "MS" as written on a logger
+    key = unit_spelling(unit) if isinstance(unit, str) else None  # "DEG/S", "°/s", "MS" as written on a logger
     if key not in table:
         raise ValueError(f"{argument} must be one of {', '.join(repr(u) for u in table)}, got {unit!r}")
     return table[key]

@@ -1718,6 +1718,23 @@ def test_units_and_frames_are_read_whatever_their_case():
          "--time-unit", "MS", "--out", "o.csv"]
     )  # fmt: skip
     assert (args.frame, args.gyr_unit, args.acc_unit, args.time_unit) == ("NED", "deg/s", "g", "ms")
+    # the spellings loggers and datasheets use: degree signs, "sec", superscripts, micro signs
+    for arg, spellings, unit in (
+        ("gyr_unit", ("°/s", "deg/sec", "Degrees/s", "°/sec"), "deg/s"),
+        ("gyr_unit", ("rad/sec", "radians/s"), "rad/s"),
+        ("acc_unit", ("m/s²", "m/s/s", "m/s**2", "M/S^2"), "m/s^2"),
+        ("time_unit", ("µs", "μs", "usec"), "us"),
+        ("time_unit", ("sec", "msec"), None),
+    ):
+        for s in spellings:
+            want = frames.unit_factor(arg, unit or {"sec": "s", "msec": "ms"}[s])
+            assert frames.unit_factor(arg, s) == want, (arg, s)
+    args = cli._parser().parse_args(
+        ["filter", "--log", "x.csv", "--observer", "robust", "--gyr-unit", "°/s", "--acc-unit", "m/s²", "--time-unit",
+         "µs", "--out", "o.csv"]
+    )  # fmt: skip
+    assert (args.gyr_unit, args.acc_unit, args.time_unit) == ("deg/s", "m/s^2", "us")
+    assert cli._parser().parse_args(["excitation", "--log", "x.csv", "--frame", "nwu"]).frame == "NWU"  # as elsewhere
 
 
 def test_pandas_nullable_numbers_and_timezone_aware_times_are_read():
