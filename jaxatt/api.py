@@ -630,6 +630,16 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
             if recorded:
                 _check_recorded_gains(path, params, entry.params(dtype=dtype), entry.name)
         elif isinstance(params, dict):
+            set_up = [k for k in params if recorded and entry.setup is not None and k in entry.setup_fields]
+            if set_up:  # they were checked, then replaced by the set-up without a word
+                warnings.warn(
+                    f"{'params' if len(set_up) > 1 else 'param'} {', '.join(set_up)} of {entry.name} "
+                    f"{'are' if len(set_up) > 1 else 'is'} set from each recording's first samples "
+                    f"(sensor to {entry.frame}): the values given are not used (to fix them, run the observer "
+                    f"jaxatt.observers.registry.get({entry.name!r}).make() as your own, with its full params)",
+                    stacklevel=3,
+                )
+                params = {k: v for k, v in params.items() if k not in set_up}
             params = _override(entry.params(dtype=dtype), params, entry.name)
         else:
             default = entry.params(dtype=dtype)

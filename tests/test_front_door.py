@@ -332,6 +332,17 @@ def test_monte_carlo_of_your_observer_is_the_same_run_as_a_recorded_log(tmp_path
     assert res.per_run["mean_angle_error_deg"][0] == pytest.approx(err[window].mean(), rel=1e-9)
 
 
+def test_a_param_the_recording_sets_up_is_said_not_to_be_used():
+    """The MEKF's field reference given in a params dict was checked (a vertical one refused as 'parallel'), then
+    replaced by the set-up from the first sample without a word: now a warning says so, and it is not checked."""
+    samples, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=2.0, dt=0.01, seed=2)
+    base = jaxatt.filter("mekf", samples.gyr, samples.acc, samples.mag, dt=0.01)
+    for ref in ([20.0, 0.0, 44.0], [0.0, 0.0, 1.0]):
+        with pytest.warns(UserWarning, match=r"param mag_ref_nav of mekf is set from each recording's first samples"):
+            est = jaxatt.filter("mekf", samples.gyr, samples.acc, samples.mag, dt=0.01, params={"mag_ref_nav": ref})
+        np.testing.assert_array_equal(est.quat, base.quat)
+
+
 @pytest.mark.parametrize("name", ["madgwick", "mahony"])
 def test_montecarlo_run_of_a_registered_filter_gives_jaxatt_filters_estimates(name):
     """An Observer carries the hold it is written for (``Observer.hold``) and every runner uses it: the low-level

@@ -62,7 +62,8 @@ class Params(NamedTuple):
     """MEKF parameters (a pytree of arrays).
 
     Fields:
-        acc_ref_nav, mag_ref_nav: v_1^N, v_2^N (3,) in the sensors' units (e.g. m/s^2 and gauss, NED).
+        acc_ref_nav, mag_ref_nav: v_1^N, v_2^N (3,) in the sensors' units (e.g. m/s^2 and gauss; NED in the
+            paper's simulations; on recorded data the set-up fills them from the first sample, in ENU).
         gyro_noise_std: std of one gyro sample (rad/s).
         bias_rw: bias random-walk density su (rad/s/sqrt(s)), >= 0.
         r_acc, r_mag: measurement covariances (3, 3) (sensor unit squared), SPD.

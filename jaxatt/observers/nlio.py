@@ -95,7 +95,8 @@ class Params(NamedTuple):
 
     Fields:
         acc_ref_nav: v_1^N (3,), e.g. gravity reference in m/s^2 (NED: [0, 0, g] as in Section 5).
-        mag_ref_nav: v_2^N (3,), e.g. magnetic field in gauss (NED).
+        mag_ref_nav: v_2^N (3,), e.g. magnetic field in gauss (NED; on recorded data the set-up fills both
+            references from the first sample, in ENU).
         kp: Kp (3, 3), symmetric positive definite (1/s with unit vectors).
         kv: kv > 0, bias gain (scalar).
         theta: scaling theta >= 1 (scalar).
