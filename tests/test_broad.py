@@ -623,6 +623,19 @@ def test_the_gyro_units_check_tells_rad_from_deg_on_every_broad_trial():
         np.testing.assert_allclose(deg / rad, np.rad2deg(1.0), rtol=1e-9)  # the same windows, scaled
 
 
+def test_the_truth_turning_check_tells_a_conjugated_truth_on_every_broad_trial():
+    """logs.truth_gyro_agreement (load_trial's check that the truth maps the sensor to the world) on real data:
+    every trial's optical truth turns as its gyro does (cosine > 0.99), its conjugate (world to sensor) below
+    the warning's 0.5."""
+    from jaxatt.data import logs
+
+    need_data()
+    for tr in broad.load(DATA):
+        q, g, t = tr.quat_true, tr.samples.gyr, tr.samples.t
+        assert logs.truth_gyro_agreement(q, g, t) > 0.99, tr.name
+        assert logs.truth_gyro_agreement(q * [1.0, -1.0, -1.0, -1.0], g, t) < 0.5, tr.name
+
+
 def test_a_6d_observer_on_broad_is_warned_about_its_heading(monkeypatch):
     """vqf-6d does not read the magnetometer: its BROAD total and heading errors include an arbitrary heading, and
     broad_score says so (the filter run is replaced by a stub: this checks the boundary, not VQF)."""

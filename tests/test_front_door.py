@@ -202,6 +202,15 @@ def test_a_recording_with_ground_truth_is_a_trial_scored_as_the_numpy_metric(tmp
         trial = logs.load_trial(path, frame="NED", group="mine", **kw)
     with pytest.warns(UserWarning, match=r"the ground truth's vertical is 1[78]\d deg from the accelerometer's"):
         logs.load_trial(path, **kw)  # the NED truth read as ENU
+    # a world-to-sensor truth (the conjugate): its vertical passes on this near-level run, its turning does not
+    conj = tmp_path / "conj.csv"
+    logs.save_log(conj, raw, frames.change_frame(q_enu * [1.0, -1.0, -1.0, -1.0], "NED", "ENU"))
+    conj.write_text(
+        "\n".join([text[0].replace("gyr_", "Gyro").replace("t,", "time_ms,", 1)] + conj.read_text().splitlines()[1:])
+        + "\n"
+    )
+    with pytest.warns(UserWarning, match=r"the ground truth does not turn as the gyro does \(median cosine -[01]\."):
+        logs.load_trial(conj, frame="NED", **kw)
     with pytest.warns(UserWarning, match=r"phone.csv: dt is not used: the log has timestamps"):
         logs.load_trial(path, frame="NED", dt=0.02, **kw)
     forgot = {k: v for k, v in kw.items() if k != "acc_unit"}  # the units check of jaxatt.filter, on the trial path

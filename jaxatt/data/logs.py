@@ -52,6 +52,7 @@ __all__ = [
     "check_log",
     "check_columns",
     "non_unit_row",
+    "truth_gyro_agreement",
     "UNIT_TOLERANCE",
     "CSV_COLUMNS",
 ]
@@ -740,6 +741,7 @@ def load_trial(
     if not isinstance(group, str) or not group.strip() or group == "all":
         raise ValueError(f"group must be a label (text, not 'all'), got {group!r}")
     _warn_truth_frame(q, samples.acc, f"log {path}")
+    _warn_truth_turns_against_gyro(q, samples.gyr, samples.t, f"log {path}")
     from .. import api  # the front door's units check, as jaxatt.filter makes it (imported when it runs: no cycle)
 
     t = np.asarray(samples.t, float)
@@ -770,7 +772,8 @@ def load_trial(
 def _warn_truth_frame(q_enu: np.ndarray, acc: np.ndarray, where: str, most_deg: float = 45.0) -> None:
     """Warn when the truth's vertical (sensor-to-ENU ``q_enu``'s up, in the sensor frame) is, in the median, more
     than ``most_deg`` from the accelerometer's specific force (which points up at rest): a truth in another frame
-    (NED read as ENU is 180 deg off) or a sensor-to-world truth given as world-to-sensor."""
+    (NED read as ENU is 180 deg off), or a sensor-to-world truth given as world-to-sensor on a tilted sensor (on a
+    near-level one :func:`_warn_truth_turns_against_gyro` tells it)."""
     w, x, y, z = (q_enu[:, i] for i in range(4))
     up = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1)  # R^T e_z
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -785,6 +788,57 @@ def _warn_truth_frame(q_enu: np.ndarray, acc: np.ndarray, where: str, most_deg: 
                 "truth's frame right (frame= / --truth-frame ENU, NED or NWU; the truth maps the sensor to it)?",
                 stacklevel=3,
             )
+
+
+def truth_gyro_agreement(q_enu, gyr, t, window_s: float = 0.1, least_deg: float = 3.0) -> Optional[float]:
+    """The median cosine between the rotation vector (body frame) of the truth over each window of ``window_s``
+    seconds, log(R_k^T R_{k+m}), and the gyro's integral over it, for the windows where both turn more than
+    ``least_deg``; None when fewer than 5 do. A truth that maps the sensor to the world turns as the gyro does
+    (near 1); one that maps the world to the sensor (its conjugate) turns about the world's axes, backwards (near
+    -1 for a sensor turning mostly about the vertical), as a scalar-last truth read as scalar-first mostly does.
+    ``q_enu`` (N, 4) (w, x, y, z), ``gyr`` (N, 3) rad/s, ``t`` (N,) s."""
+    q, g, t = (np.asarray(x, float) for x in (q_enu, gyr, t))
+    n = len(t)
+    if n < 3:
+        return None
+    d = np.diff(t)
+    m = max(1, int(round(window_s / float(np.median(d))))) if np.median(d) > 0 else 1
+    starts = np.arange(0, n - m, m)[:20000]
+    if starts.size < 5:
+        return None
+    # the gyro's integral over [t_k, t_{k+m}]: sample j+1 covers [t_j, t_{j+1}] (the "next" hold)
+    inc = np.concatenate([np.zeros((1, 3)), g[1:] * d[:, None]])
+    with np.errstate(invalid="ignore"):
+        cum = np.concatenate([np.zeros((1, 3)), np.nancumsum(inc, axis=0)])[1:]
+        turn_g = cum[starts + m] - cum[starts]
+        q0, q1 = q[starts], q[starts + m]
+        w = np.sum(q0 * q1, axis=-1)  # conj(q0) (x) q1: scalar part, then vector part
+        v = q0[:, :1] * q1[:, 1:] - q1[:, :1] * q0[:, 1:] - np.cross(q0[:, 1:], q1[:, 1:])
+        v = np.where((w < 0)[:, None], -v, v)
+        nv = np.linalg.norm(v, axis=-1)
+        turn_t = (2.0 * np.arctan2(nv, np.abs(w)) / np.where(nv > 0, nv, 1.0))[:, None] * v
+        ng, nt = np.linalg.norm(turn_g, axis=-1), np.linalg.norm(turn_t, axis=-1)
+        least = np.radians(least_deg)
+        ok = np.isfinite(ng) & np.isfinite(nt) & (ng > least) & (nt > least) & (nt < np.radians(150.0))
+        if ok.sum() < 5:
+            return None
+        cos = np.sum(turn_g[ok] * turn_t[ok], axis=-1) / (ng[ok] * nt[ok])
+    return float(np.median(cos))
+
+
+def _warn_truth_turns_against_gyro(q_enu, gyr, t, where: str) -> None:
+    """Warn when the truth does not turn as the gyro does (:func:`truth_gyro_agreement` below 0.5, 60 deg; the
+    20 BROAD trials read 0.999-1.0, their conjugates -0.12 to -0.996)."""
+    c = truth_gyro_agreement(q_enu, gyr, t)
+    if c is None:  # a slow recording: longer windows
+        c = truth_gyro_agreement(q_enu, gyr, t, window_s=0.5)
+    if c is not None and c < 0.5:
+        warnings.warn(
+            f"{where}: the ground truth does not turn as the gyro does (median cosine {c:.2f} between their "
+            "rotations over short windows, 1 when they agree): does the truth map the world to the sensor (give its "
+            "conjugate), is it scalar-last (jaxatt reads w, x, y, z), or is its body frame not the IMU's?",
+            stacklevel=3,
+        )
 
 
 def save_log(path, samples: ImuSample, quat_true=None) -> None:
