@@ -33,7 +33,7 @@ import numpy as np
 
 from . import engine, frames, so3
 from .observers import registry
-from .types import ImuSample, Observer, check_seed, check_window_start
+from .types import HOLDS, ImuSample, Observer, check_seed, check_window_start
 
 __all__ = [
     "filter",
@@ -664,6 +664,10 @@ def resolve_observer(observer: ObserverLike, params=None, *, dtype=None, recorde
                 "as the template, e.g. jaxatt.fitting.gainsfile.read_params(path, base=my_params)"
             )
         engine.check_finite_params(params, observer.name)  # a pytree of numbers, or one line naming the leaf
+        if observer.hold is not None and observer.hold not in HOLDS:
+            raise ValueError(
+                f"observer {observer.name!r}: Observer.hold must be one of {', '.join(HOLDS)}, got {observer.hold!r}"
+            )
         return observer, params, None, observer.name
     if hasattr(observer, "init") and hasattr(observer, "step"):
         return resolve_observer(

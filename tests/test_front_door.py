@@ -570,6 +570,14 @@ def test_a_missing_first_reading_starts_from_the_first_present_one(name, quiet_l
         (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=float("inf")), "duration must be a finite positive"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", runs=1.5), "runs must be a whole number"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", duration=2.0, dt=0.3), r"whole number of steps of dt = 0.3 s"),
+        (
+            lambda g, a, m: jaxatt.filter(MY_OBSERVER._replace(hold="cubic"), g, a, m, dt=0.01, params=MY_PARAMS),
+            r"observer 'my_mahony': Observer.hold must be one of zoh, linear, next, got 'cubic'",
+        ),
+        (
+            lambda g, a, m: montecarlo.run(MY_OBSERVER._replace(hold="x"), MY_PARAMS, ImuSample(None, g, a, m), 0.01),
+            r"observer 'my_mahony': Observer.hold: hold must be one of zoh, linear, next, got 'x'",
+        ),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", dt="0.01"), r"dt must be a number of seconds"),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", runs=2**33), "runs must be <= "),
         (lambda g, a, m: jaxatt.monte_carlo("mahony", chunk=0), "chunk must be >= 1"),
