@@ -47,17 +47,20 @@ def stats_init(shape, dtype) -> RunningStats:
 
 
 def stats_update(s: RunningStats, x, weight) -> RunningStats:
-    """Add ``x`` when ``weight`` is 1 (0 leaves ``s`` unchanged)."""
+    """Add ``x`` when ``weight`` is 1 (0 leaves ``s`` unchanged). Welford's update with x - mean_new written as
+    delta (1 - weight / n): ``x`` is read once, so m2 cannot go negative when XLA rounds two reads of ``x``
+    differently (a one-sample window's std was NaN in float64 and 1e-5 deg in float32, 0 in a batch of 3)."""
     n = s.n + weight
     delta = x - s.mean
-    mean = s.mean + weight * delta / jnp.maximum(n, 1.0)
-    m2 = s.m2 + weight * delta * (x - mean)
+    frac = weight / jnp.maximum(n, 1.0)
+    mean = s.mean + frac * delta
+    m2 = s.m2 + weight * (1.0 - frac) * delta * delta
     return RunningStats(n, mean, m2)
 
 
 def stats_std(s: RunningStats):
     """Population standard deviation per element."""
-    return jnp.sqrt(s.m2 / jnp.maximum(s.n, 1.0))
+    return jnp.sqrt(jnp.maximum(s.m2, 0.0) / jnp.maximum(s.n, 1.0))
 
 
 def angle_error_deg(r_true, r_est):

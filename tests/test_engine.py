@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxatt
 from jaxatt import engine, montecarlo
 from jaxatt.types import ImuSample, Interval, Observer
 
@@ -229,3 +230,23 @@ def test_a_grid_of_gains_is_one_vmap_of_metrics_fn_and_equals_monte_carlo_per_ga
         for k, v in one.per_run.items():
             np.testing.assert_allclose(got[k][i], v, rtol=1e-12, atol=1e-14, err_msg=k)
     assert not np.allclose(got["mean_angle_error_deg"][0], got["mean_angle_error_deg"][2])  # the gain matters
+
+
+def test_running_stats_are_numpys_mean_and_std_and_a_single_sample_has_std_0():
+    """metrics.stats_update (Welford, weights 0 / 1) gives numpy's mean and population std of the weighted-in
+    values; one sample gives a std of exactly 0. A Monte Carlo window of one estimate gave NaN (float64) or
+    1e-5 deg (float32) with runs=1 and 0 with runs=3: XLA rounded two reads of the same error differently and
+    m2 went negative."""
+    from jaxatt import metrics
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(500, 3)) * 10.0 + 3.0
+    w = (rng.random(500) < 0.7).astype(float)
+    s = metrics.stats_init((3,), jnp.float64)
+    for xi, wi in zip(x, w):
+        s = metrics.stats_update(s, jnp.asarray(xi), jnp.asarray(wi))
+    np.testing.assert_allclose(np.asarray(s.mean), x[w > 0].mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(metrics.stats_std(s)), x[w > 0].std(axis=0), rtol=1e-10)
+    res = jaxatt.monte_carlo("madgwick", None, runs=1, duration=0.02, dtype=jnp.float32)
+    stds = {k: v for k, v in res.per_run.items() if k.startswith("std_")}
+    assert stds and all(float(np.asarray(v)[0]) == 0.0 for v in stds.values()), stds
