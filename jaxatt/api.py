@@ -873,11 +873,12 @@ def filter(
         )
     whole = isinstance(gyr, ImuSample)
     if whole:  # one recording (jaxatt.data.logs.load_log)
-        given = [k for k, v in (("acc", acc), ("mag", mag), ("t", t), ("dt", dt)) if v is not None]
+        timed = gyr.t is not None  # without timestamps, dt times it
+        given = [k for k, v in (("acc", acc), ("mag", mag), ("t", t), ("dt", dt if timed else None)) if v is not None]
         if given:
             raise ValueError(
                 f"gyr is a whole recording (an ImuSample with its own t, acc and mag): {', '.join(given)} cannot be "
-                "given beside it"
+                "given beside it" + (" (to time it by dt instead: samples._replace(t=None))" if "dt" in given else "")
             )
         gyr, acc, mag, t = gyr.gyr, gyr.acc, gyr.mag, gyr.t
     from . import smoothing

@@ -1802,3 +1802,25 @@ def test_pandas_nullable_numbers_and_timezone_aware_times_are_read():
     ref = jaxatt.filter("mahony", gyr, acc, with_na, t=t)
     got = jaxatt.filter("mahony", gyr, acc, Nullable(with_na), t=Zoned(t))
     np.testing.assert_array_equal(got.quat, ref.quat)
+
+
+def test_a_recording_without_timestamps_is_timed_by_dt_and_a_trial_without_a_group_is_refused_at_once():
+    """An ImuSample with t=None was refused both without dt ('dt is required') and with it ('dt cannot be given
+    beside it'): dt now times it. A hand-built Trial whose name has no BROAD number and no group ran the whole
+    scan of broad_score before failing on its group with no hint: check_trials refuses it first, saying how."""
+    n = 300
+    rng = np.random.default_rng(5)
+    g, a, m = rng.normal(size=(n, 3)) * 0.01, np.tile([0, 0, 9.81], (n, 1)), np.tile([0, 20, -40.0], (n, 1))
+    est = jaxatt.filter("madgwick", ImuSample(None, g, a, m), dt=0.01)
+    np.testing.assert_array_equal(est.quat, jaxatt.filter("madgwick", g, a, m, dt=0.01).quat)
+    with pytest.raises(ValueError, match=r"dt cannot be given beside it \(to time it by dt instead"):
+        jaxatt.filter("madgwick", ImuSample(np.arange(n) * 0.01, g, a, m), dt=0.01)
+    walk = broad.Trial(
+        "walk", ImuSample(np.arange(n) * 0.01, g, a, m), np.tile([1.0, 0, 0, 0], (n, 1)), np.ones(n, bool), 100.0
+    )
+    for call in (lambda: jaxatt.broad_score("madgwick", None, [walk]), lambda: broad.check_trials([walk])):
+        with pytest.raises(
+            ValueError, match=r"trial walk: cannot tell the group .* give its group, Trial\(\.\.\., group="
+        ):
+            call()
+    assert jaxatt.broad_score("madgwick", None, [walk._replace(group="mine")]).groups["mine"].n_trials == 1

@@ -235,6 +235,13 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
         )
     for tr in trials:
         where = f"trial {tr.name}"
+        if not isinstance(tr.group, str) or not tr.group.strip():
+            try:  # BROAD's trials: the group from the trial number (a fit and the group means need it)
+                group_of(tr.name)
+            except ValueError as e:
+                raise ValueError(
+                    f"{where}: {e}: give its group, Trial(..., group='mine') or load_trial(..., group='mine')"
+                ) from None
         s = tr.samples
         gyr = np.asarray(s.gyr)
         n = gyr.shape[0] if gyr.ndim == 2 else -1
