@@ -1059,6 +1059,14 @@ def test_float32_data_with_epoch_timestamps_keeps_its_times():
     assert est.quat.dtype == np.float32
     np.testing.assert_array_equal(est.t, t)
     np.testing.assert_array_equal(est.outputs["t"], t)
+    # float32 stamps of a device clock at 1e5 s step by 0.0078 / 0.0156 s instead of 0.01 s: said (was silent);
+    # the same stamps near 0 resolve the interval: nothing said
+    t32 = (1e5 + 0.01 * np.arange(n)).astype(np.float32)
+    with pytest.warns(UserWarning, match=r"t is float32: near 1e\+05 s it resolves 0.00781 s, against a sample"):
+        jaxatt.filter("robust", g, a, m, t=t32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxatt.filter("robust", g, a, m, t=(0.01 * np.arange(n)).astype(np.float32))
 
 
 def test_datetime64_timestamps_are_read_in_their_own_unit():

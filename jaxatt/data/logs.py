@@ -118,7 +118,9 @@ def narrow_timestamps_hint(dtype, t: np.ndarray) -> str:
 def check_timestamps(t, name: str = "t", dtype=None, where: str = "") -> None:
     """ValueError (one line) unless the timestamps ``t`` ((N,), s) are finite and strictly increasing, naming the
     first bad row of ``name``; ``where`` starts the message (e.g. "log walk.csv: "), ``dtype`` is the timestamps'
-    type as given (a float32 hint). Every boundary that takes timestamps checks them here."""
+    type as given (a float32 hint). Every boundary that takes timestamps checks them here. Increasing timestamps
+    of a narrow float type whose resolution is over 1 % of the sample interval are warned about (float32 at
+    1e5 s steps by 0.0078 or 0.0156 s where the sensor stepped by 0.01 s)."""
     what = name
     t = np.asarray(t, np.float64)
     bad = ~np.isfinite(t)
@@ -127,6 +129,16 @@ def check_timestamps(t, name: str = "t", dtype=None, where: str = "") -> None:
         raise ValueError(f"{where}{what} must be finite (s): {what}[{k}] is {float(t[k])}")
     d = np.diff(t)
     if not np.any(d <= 0):
+        if dtype in (np.float32, np.float16) and d.size:
+            top, step = float(np.max(np.abs(t))), float((t[-1] - t[0]) / d.size)  # the mean: the median is quantised
+            resolution = float(np.spacing(np.asarray(top, dtype)))
+            if resolution > 0.01 * step:
+                warnings.warn(
+                    f"{where}{what} is {np.dtype(dtype).name}: near {top:.3g} s it resolves {resolution:.3g} s, "
+                    f"against a sample interval of {step:.3g} s (each step is off by up to half of that): pass the "
+                    "timestamps as float64 or relative to the first",
+                    stacklevel=3,
+                )
         return
     k = int(np.argmax(d <= 0))
     hint = narrow_timestamps_hint(dtype, t)
