@@ -536,8 +536,10 @@ def _first_field_norm(mag) -> float:
 
 
 def _median_finite(x) -> float:
-    x = np.asarray(x, float)
-    return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
+    """The median trial's value among the finite ones (the lower middle one of an even count: a value of some
+    trial, where the mean of two trials in different units, uT and nT, would fit neither); NaN when none."""
+    x = np.sort(np.asarray(x, float)[np.isfinite(np.asarray(x, float))])
+    return float(x[(x.size - 1) // 2]) if x.size else float("nan")
 
 
 def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
@@ -559,7 +561,7 @@ def recording_defaults_for_trials(entry, given, p, trials, warn: bool = True):
         for what, values, value, fields, most, far_from, why in cases:
             if not [f for f in fields if f not in named] or _spread(values) <= most:
                 continue
-            far = [tr.name for tr, v in zip(trials, values) if _spread([v, value]) > far_from]
+            far = [tr.name for tr, v in zip(trials, values) if _spread([v, value]) >= far_from]
             warnings.warn(
                 f"{entry.name}: the {what} differ widely ({', '.join(far[:3]) or 'some'}"
                 f"{', ...' if len(far) > 3 else ''} far from the median {value:.4g}; {why}): the defaults of "

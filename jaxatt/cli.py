@@ -1420,6 +1420,8 @@ def _excitation(args) -> int:
         from .observers import complementary as comp
 
         samples = _load_any_log(args.log, columns=args.columns, time_unit=args.time_unit or "s")[0]
+        if len(samples.t) < 2:
+            raise UserError(f"--log {args.log}: {len(samples.t)} sample; the excitation analysis needs at least 2")
         if samples.acc is None and samples.mag is None:
             raise UserError(f"--log {args.log}: the log has neither acc nor mag columns")
         args.frame = args.frame or "NED"

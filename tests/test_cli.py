@@ -180,6 +180,9 @@ def test_excitation_of_a_log_file(tmp_path, capsys):
     logs.save_log(path, ImuSample(t, np.tile([0.0, 0.0, 0.5], (len(t), 1)), np.zeros_like(up), None))
     assert cli.main(["excitation", "--log", str(path), "--window", "2"]) == 2
     assert "acc has no valid reading (every row non-finite or zero): nothing to analyse" in capsys.readouterr().err
+    logs.save_log(path, ImuSample(t[:1], np.zeros((1, 3)), up[:1], None))  # one row: the file is named
+    assert cli.main(["excitation", "--log", str(path)]) == 2
+    assert f"--log {path}: 1 sample; the excitation analysis needs at least 2" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------------------------------

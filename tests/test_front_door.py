@@ -789,6 +789,8 @@ def test_trials_whose_recording_defaults_differ_widely_are_warned_about():
         ("mekf", [ut, nt, ut._replace(name="b")], r"mekf: the sizes of the trials' first magnetometer readings differ "
          r"widely \(in_nT far from the median 44.72; a magnetometer in another unit\?\): the defaults of r_mag"),
         ("vqf", [ut, slow], r"vqf: the trials' sampling steps \(s\) differ widely .*the defaults of ts0"),
+        # two trials: the median is one trial's value (the mean of uT and nT, 2.2e4, fitted neither)
+        ("mekf", [ut, nt], r"mekf: the sizes .* differ widely \(in_nT far from the median 44.72; a magnetometer"),
     ):  # fmt: skip
         entry = registry.get(name)
         with pytest.warns(UserWarning, match=match):
@@ -1832,3 +1834,6 @@ def test_a_recording_without_timestamps_is_timed_by_dt_and_a_trial_without_a_gro
         ):
             call()
     assert jaxatt.broad_score("madgwick", None, [walk._replace(group="mine")]).groups["mine"].n_trials == 1
+    six = walk._replace(group="mine", samples=walk.samples._replace(mag=None))  # a 6-axis IMU, built by hand
+    with pytest.raises(ValueError, match=r"got None \(a trial without a magnetometer has NaN rows: mag=np.full"):
+        broad.check_trials([six])

@@ -249,7 +249,14 @@ def check_trials(trials, what: str = "trials", need_scored: bool = False) -> Lis
             a = np.asarray(v) if v is not None else None
             if a is None or a.shape != (n, 3) or n < 2:
                 got = "None" if a is None else str(a.shape)
-                raise ValueError(f"{where}: samples.{field} must have shape (N, 3) with N >= 2 like gyr, got {got}")
+                hint = (
+                    " (a trial without a magnetometer has NaN rows: mag=np.full((N, 3), np.nan))"
+                    if field == "mag" and a is None
+                    else ""
+                )
+                raise ValueError(
+                    f"{where}: samples.{field} must have shape (N, 3) with N >= 2 like gyr, got {got}{hint}"
+                )
             if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
                 raise ValueError(f"{where}: samples.{field} must be real numbers, got dtype {a.dtype}")
             if np.isinf(a).any():
