@@ -225,6 +225,19 @@ RATIO_SUBWINDOWS = 8
 
 
 def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[float]:
+    """How far the gyro turns against the accelerometer-magnetometer frame (:func:`_gyro_rotation`)."""
+    return _gyro_rotation(gyr, acc, mag, ts, max_windows)[0]
+
+
+def _frame_turn_axis(frame: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Unit axis (body frame) of the body's rotation from sample i to j that the bases frame[i], frame[j] (the nav
+    basis in body coordinates) imply: R = F_i F_j^T."""
+    rel = np.einsum("nik,njk->nij", frame[i], frame[j])
+    v = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], axis=-1)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _gyro_rotation(gyr, acc, mag, ts, max_windows: int = 2000):
     """How far the gyro turns against the accelerometer-magnetometer frame (a units check needing no filter):
     the median over windows of :data:`RATIO_WINDOWS` of |sum of gyr dt| / the rotation angle between the frames
     (gravity, gravity x field; from 50-ms means of the present acc and mag readings, longer for a sensor at a
@@ -233,16 +246,19 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
     :data:`RATIO_SUBWINDOWS` sub-windows reaches 180 deg (a fast spin, whose net angle wraps); None with fewer
     than 5. About 1 for gyr in rad/s (0.23-1.0 on the 20 BROAD trials), 57 for deg/s given as rad/s (13-57 on
     BROAD: fast translation makes the frame turn with the linear acceleration). ``ts``: sample times (T,), s;
-    gyr, acc, mag: (T, 3) in the body frame."""
+    gyr, acc, mag: (T, 3) in the body frame. Returns (ratio, cos): cos the median cosine between the gyro's turn
+    and the frame's over the windows whose ratio is at most twice the median (1 when they turn the same way: a
+    gyro in the wrong unit; near 0 when the frame turns with a linear acceleration or a field change the gyro
+    does not see); (None, None) with fewer than 5 windows."""
     if acc is None or mag is None or len(ts) < 3:
-        return None
+        return None, None
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN sensor: no window counts
         dt = np.diff(ts)
         step = float(np.median(dt))
         k = _rows_in(0.05, step, len(ts))
         if k is None:
-            return None
+            return None, None
         a_s, m_s = (_moving_mean(x, max(k, _present_spacing(x))) for x in (acc, mag))
         a_n, m_n = np.linalg.norm(a_s, axis=-1), np.linalg.norm(m_s, axis=-1)
         e1 = a_s / a_n[:, None]
@@ -256,7 +272,7 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
         turned = np.concatenate(
             [np.zeros((1, 3)), np.cumsum(np.where(np.isfinite(gyr[:-1]), gyr[:-1], 0.0) * dt[:, None], 0)]
         )
-        ratios = []
+        ratios, cosines = [], []
         for w in RATIO_WINDOWS:
             n = _rows_in(w, step, len(ts))
             if n is None:
@@ -267,9 +283,16 @@ def gyro_rotation_ratio(gyr, acc, mag, ts, max_windows: int = 2000) -> Optional[
             cuts = [i + (n * c) // RATIO_SUBWINDOWS for c in range(RATIO_SUBWINDOWS + 1)]
             path = sum(_frame_angle(frame, u, v) for u, v in zip(cuts[:-1], cuts[1:]))  # NaN: not counted
             use = (seen > np.deg2rad(10)) & (seen < np.deg2rad(90)) & (path < np.pi)
-            ratios.append(np.linalg.norm(turned[i + n] - turned[i], axis=-1)[use] / seen[use])
+            g = (turned[i + n] - turned[i])[use]
+            g_norm = np.linalg.norm(g, axis=-1)
+            ratios.append(g_norm / seen[use])
+            cosines.append(np.sum(g * _frame_turn_axis(frame, i[use], (i + n)[use]), axis=-1) / g_norm)
         r = np.concatenate(ratios) if ratios else np.zeros(0)
-    return float(np.median(r)) if len(r) >= 5 else None
+        c = np.concatenate(cosines) if cosines else np.zeros(0)
+    if len(r) < 5:
+        return None, None
+    typical = r <= 2.0 * np.median(r)  # the windows that make the median ratio
+    return float(np.median(r)), float(np.nanmedian(c[typical]))
 
 
 def _warn_implausible(
@@ -307,7 +330,7 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
         d = np.diff(ts)
         step = float(np.median(d))
         time_suspect = step >= 1.0  # the gyro's integral is then off by the time unit, not by the gyro's
-        ratio = None if time_suspect else gyro_rotation_ratio(gyr, acc, mag, ts)
+        ratio, agree = (None, None) if time_suspect else _gyro_rotation(gyr, acc, mag, ts)
         if g > 35.0:
             notes.append(
                 f"gyr reaches {g:.4g} rad/s (more than 2000 deg/s): is it in deg/s? jaxatt expects rad/s "
@@ -319,7 +342,9 @@ def _implausible_notes(gyr, acc, mag, ts, from_dt: bool, api: str, cli: str) -> 
                 f"(57x)? jaxatt expects rad/s (gyr_unit='deg/s' in {api}, --gyr-unit deg/s in {cli}, "
                 "converts it)"
             )
-        elif ratio is not None and ratio < LOW_ROTATION_RATIO:
+        elif ratio is not None and ratio < LOW_ROTATION_RATIO and agree is not None and agree > 0.5:
+            # the same way round, 57x less (a tilt from a linear acceleration or a field swinging at rest turns
+            # the acc-mag frame too, but not about the gyro's axis)
             notes.append(
                 f"the gyro turns {ratio:.3g}x as far as the accelerometer and magnetometer do: is gyr converted "
                 f"twice (already in rad/s and given as deg/s: 57x too small) or in a smaller unit than said? "

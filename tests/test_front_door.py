@@ -991,6 +991,22 @@ def test_the_gyro_units_check_sees_fast_spins_slow_sensors_and_dropouts_right():
     g, a, m = _spin(0.5)
     with pytest.warns(UserWarning, match=r"the gyro turns 0.017\dx as far .*: is gyr converted twice"):
         jaxatt.filter("madgwick", g, a, m, dt=0.01, gyr_unit="deg/s")
+    # but not a car that brakes and accelerates on a straight road (the acc-mag frame tilts, the gyro does not
+    # turn, about no common axis) nor a sensor at rest in a swinging field: the gyro is right, and it was warned
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 60.0, 0.01)
+    push = np.where(np.isin((np.arange(t.size) // 400) % 5, (0,)), 3.0, 0.0)
+    push -= np.where(np.isin((np.arange(t.size) // 400) % 5, (2,)), 3.0, 0.0)
+    acc = [0.0, 0.0, 9.81] + np.stack([0 * t, push, 0 * t], -1) + 0.05 * rng.standard_normal((t.size, 3))
+    swing = np.deg2rad(25.0) * np.sin(2 * np.pi * t / 8.0)
+    field = np.stack([-20.0 * np.sin(swing), 20.0 * np.cos(swing), np.full(t.size, -40.0)], -1)
+    gyr = 0.003 * rng.standard_normal((t.size, 3))
+    for a_, m_ in (
+        (acc, [0.0, 20.0, -40.0] + 0.3 * rng.standard_normal((t.size, 3))),
+        ([0.0, 0.0, 9.81] + 0 * acc, field),
+    ):
+        assert jaxatt.api.gyro_rotation_ratio(gyr, a_, m_, t) < jaxatt.api.LOW_ROTATION_RATIO
+        assert not [n for n in jaxatt.api._implausible_notes(gyr, a_, m_, t, False, "f", "f") if "twice" in n]
 
 
 @pytest.mark.parametrize("name", ["nlo", "madgwick"])
