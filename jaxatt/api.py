@@ -1319,7 +1319,7 @@ def ahrs_errors(truth, out):
     return e
 
 
-@functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=32)
 def _estimating_in_enu(obs: Observer, frame: str, name: str) -> Observer:
     """``obs`` with its estimate (the ``q`` / ``r`` of its outputs) re-expressed from the navigation frame
     ``frame`` in ENU, the frame of the simulated truth of :func:`ahrs_scenario` (cached: one program per frame)."""

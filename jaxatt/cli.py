@@ -1296,7 +1296,7 @@ def _observer_frame(observer, frame: str) -> str:
     """The navigation frame of a registered observer's outputs; ``frame`` for one of your own (as given)."""
     from .observers import registry
 
-    return registry.get(observer).frame if isinstance(observer, str) else frame
+    return registry.get(observer).frame if isinstance(observer, (str, registry.Entry)) else frame
 
 
 def _in_frame(name: str, v, frame: str, own: str):

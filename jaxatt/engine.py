@@ -86,7 +86,9 @@ def hold_for(observer: Observer, hold: Optional[str] = None, default: str = "zoh
     (``Observer.hold``), else the runner's ``default`` for an observer that declares none ("next" at the front
     door, "zoh" in the engine, :mod:`jaxatt.montecarlo` and the losses). ValueError for a hold that is none of
     them."""
-    return check_hold(hold or getattr(observer, "hold", None) or default)
+    if hold is not None:
+        return check_hold(hold)
+    return check_hold(getattr(observer, "hold", None) or default)
 
 
 def check_finite_params(params, name: str = "observer") -> None:

@@ -22,6 +22,7 @@ converted once, at the boundary, by :func:`to_si` from the tables :data:`GYR_UNI
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -93,13 +94,11 @@ def unit_spelling(unit):
         ("degrees", "deg"),
         ("degree", "deg"),
         ("radians", "rad"),
-        ("/sec", "/s"),
     ):
         u = u.replace(old, new)
+    u = re.sub(r"(^|/|[mun])sec(?:ond)?s?(?=$|/|\^)", r"\1s", u)  # "sec", "/second", "msec" -> "s", "/s", "ms"
     if u.endswith("/s/s"):
         u = u[:-4] + "/s^2"
-    if u.endswith("sec") and u[:-3] in ("", "m", "u", "n"):
-        u = u[:-3] + "s"
     return u
 
 

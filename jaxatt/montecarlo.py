@@ -219,7 +219,6 @@ def _pick_out(t, truth, out):
     return out
 
 
-@functools.lru_cache(maxsize=32)
 def log_runner(observer: Observer, hold: Optional[str] = None, dtype=None):
     """Pure ``fn(params, samples, dt) -> Out (T, ...)``: ``observer`` over one log of T samples (any sample
     pytree, time-major), T estimates (row 0 ``init``'s). ``dt``: a scalar step (s) or the T - 1 steps
@@ -232,8 +231,12 @@ def log_runner(observer: Observer, hold: Optional[str] = None, dtype=None):
     compiled scan then holds one copy of the step instead of two (full blocks and a partial last one), which
     roughly halves its compile time, and logs of nearby lengths share it. Estimate k depends on samples 0..k only,
     so the T estimates are those of the unpadded scan. ``hold``: None, the observer's own, else "zoh"
-    (:func:`jaxatt.engine.hold_for`)."""
-    hold = engine.hold_for(observer, hold)
+    (:func:`jaxatt.engine.hold_for`). Cached on the observer, the resolved hold and the dtype."""
+    return _log_runner(observer, engine.hold_for(observer, hold), None if dtype is None else jnp.dtype(dtype).name)
+
+
+@functools.lru_cache(maxsize=32)
+def _log_runner(observer: Observer, hold: str, dtype):
     obs_dtype = None if dtype is None else jnp.dtype(dtype)
 
     @jax.jit
@@ -287,7 +290,8 @@ def run(
             does then).
         dt: step (s); None takes dt_k = t_{k+1} - t_k from the timestamps.
         hold: "zoh", "linear" or "next" (:data:`jaxatt.types.HOLDS`); None: the observer's own
-            (``Observer.hold``: "next" for the registered filters, as :func:`jaxatt.filter`), else "zoh".
+            (``Observer.hold``; :func:`jaxatt.observers.registry.recorded_observer` gives a registered observer
+            with its entry's, the hold of :func:`jaxatt.filter`), else "zoh".
         validate: optional parameter check (e.g. ``batista_ges.check_params``), run on concrete params.
     Returns the observer's Out with a leading time axis: row 0 is ``init``'s estimate at t_0, row k the estimate
     at t_k (:mod:`jaxatt.engine`).

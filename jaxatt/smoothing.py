@@ -698,17 +698,30 @@ def smoother_fn(
     return fn
 
 
-@functools.lru_cache(maxsize=32)
+def _static(observer, static: dict) -> dict:
+    """The keywords of a cached program: the hold resolved (:func:`jaxatt.engine.hold_for`), in one order."""
+    return dict(sorted({**static, "hold": engine.hold_for(observer, static.get("hold"), "next")}.items()))
+
+
 def compiled_passes(observer, n_steps: int, **static):
     """``jax.jit`` of :func:`passes_fn` (cached like :func:`compiled`): the records of both passes, to fuse with
     many fusion params (:func:`fuse_passes`)."""
-    return jax.jit(passes_fn(observer, n_steps, **static))
+    return _compiled_passes(observer, int(n_steps), **_static(observer, static))
 
 
 @functools.lru_cache(maxsize=32)
+def _compiled_passes(observer, n_steps: int, **static):
+    return jax.jit(passes_fn(observer, n_steps, **static))
+
+
 def compiled(observer, n_steps: int, **static):
-    """``jax.jit`` of :func:`smoother_fn` (cached on every argument: new params, fusion params or recordings of
-    the same shapes reuse the compiled program)."""
+    """``jax.jit`` of :func:`smoother_fn` (cached on every argument, the hold resolved: new params, fusion params
+    or recordings of the same shapes reuse the compiled program)."""
+    return _compiled(observer, int(n_steps), **_static(observer, static))
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled(observer, n_steps: int, **static):
     return jax.jit(smoother_fn(observer, n_steps, **static))
 
 

@@ -975,3 +975,37 @@ def test_reproduce_batista_ges_plot_of_a_run_shorter_than_its_trace_interval(tmp
     argv = ["reproduce", "batista-ges", "--runs", "1", "--duration", "0.05", "--quiet", "--plot", str(png)]
     assert cli.main(argv) == 0
     assert png.stat().st_size > 10_000
+
+
+def test_filter_command_writes_a_registry_entry_of_yours_in_the_frame_asked(tmp_path, monkeypatch):
+    """--observer module:ENTRY (a registry Entry of your own) with --frame NED --offline: the backward pass's
+    quaternion is written in NED, as for a registered name (it stayed in the entry's ENU: 180 deg off)."""
+    import jaxatt
+    from jaxatt.data import logs
+
+    (tmp_path / "my_entry.py").write_text(
+        "from jaxatt.observers import registry\n"
+        "ENTRY = registry.get('madgwick')._replace(name='my_madgwick', module='')\n"
+    )
+    samples, _ = _sim_log(3.0)
+    log = tmp_path / "log.npz"
+    logs.save_log(log, samples)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "est.csv"
+    argv = [
+        "filter",
+        "--log",
+        str(log),
+        "--observer",
+        "my_entry:ENTRY",
+        "--frame",
+        "NED",
+        "--offline",
+        "--out",
+        str(out),
+    ]
+    assert cli.main(argv) == 0
+    ned = np.genfromtxt(out, delimiter=",", names=True)
+    ref = jaxatt.filter("madgwick", samples.gyr, samples.acc, samples.mag, t=samples.t, offline=True)
+    want = jaxatt.frames.change_frame(ref.outputs["backward_q"], "NED", "ENU")
+    np.testing.assert_allclose(np.column_stack([ned[f"backward_q_{ax}"] for ax in "wxyz"]), want, atol=1e-12)

@@ -352,11 +352,12 @@ def test_a_param_the_recording_sets_up_is_said_not_to_be_used():
         np.testing.assert_array_equal(est.quat, base.quat)
 
 
-@pytest.mark.parametrize("name", ["madgwick", "mahony"])
+@pytest.mark.parametrize("name", ["madgwick", "mahony", "complementary", "mekf"])
 def test_montecarlo_run_of_a_registered_filter_gives_jaxatt_filters_estimates(name):
     """An Observer carries the hold it is written for (``Observer.hold``) and every runner uses it: the low-level
     montecarlo.run of a registered filter's Observer gives jaxatt.filter's estimates. It used to hold each sample
-    over the step after it ("zoh") where the filter updates with it ("next"): 0.45 deg apart on Madgwick."""
+    over the step after it ("zoh") where the filter updates with it ("next"): 0.45 deg apart on Madgwick. The
+    observers that declare no hold of their own (complementary, MEKF) get their entry's from recorded_observer."""
     samples, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(), duration=5.0, dt=0.01, seed=2)
     e = registry.get(name)
     p = e.params(dtype=jnp.float64)
@@ -366,8 +367,10 @@ def test_montecarlo_run_of_a_registered_filter_gives_jaxatt_filters_estimates(na
     def gap_deg(out):
         return float(np.rad2deg(np.max(so3.angle_error(r_filter, so3.quat_to_matrix(engine.estimate_q(out))))))
 
-    assert gap_deg(montecarlo.run(e.make(), p, samples, 0.01)) < 1e-9
-    assert gap_deg(montecarlo.run(e.make(), p, samples, 0.01, hold="zoh")) > 1e-2  # a hold given still wins
+    obs = registry.recorded_observer(name)
+    assert obs.hold == "next" and e.make().hold in ("next", None)
+    assert gap_deg(montecarlo.run(obs, p, samples, 0.01)) < 1e-9
+    assert gap_deg(montecarlo.run(obs, p, samples, 0.01, hold="zoh")) > 1e-2  # a hold given still wins
 
 
 def test_the_estimate_is_read_from_q_everywhere_when_an_output_also_has_r():
@@ -1774,7 +1777,7 @@ def test_units_and_frames_are_read_whatever_their_case():
     assert (args.frame, args.gyr_unit, args.acc_unit, args.time_unit) == ("NED", "deg/s", "g", "ms")
     # the spellings loggers and datasheets use: degree signs, "sec", superscripts, micro signs
     for arg, spellings, unit in (
-        ("gyr_unit", ("°/s", "deg/sec", "Degrees/s", "°/sec"), "deg/s"),
+        ("gyr_unit", ("°/s", "deg/sec", "Degrees/s", "°/sec", "deg/second"), "deg/s"),
         ("gyr_unit", ("rad/sec", "radians/s"), "rad/s"),
         ("acc_unit", ("m/s²", "m/s/s", "m/s**2", "M/S^2"), "m/s^2"),
         ("time_unit", ("µs", "μs", "usec"), "us"),

@@ -52,7 +52,7 @@ Initial orientation (``make_observer(init_mode=...)``):
   the magnetometer term; measured: still 177 deg off after 60 s with Kp = 2 and gyro noise). On BROAD the filter
   converges in the rest phase before the scored ``movement`` samples, and the published numbers include this
   start, so it is kept for reproduction. Use "triad" on other data.
-* ``"triad"`` (default; "broad" was the default up to jaxatt 0.2.0): the correct sensor-to-NWU orientation from
+* ``"triad"`` (default; "broad" was the default before): the correct sensor-to-NWU orientation from
   the same two vectors (rows: north, west, up in sensor coordinates), so that the filter starts converged.
 
 Missing samples (NaN in a log; also all-zero vectors, which the C code treats as missing):
@@ -341,7 +341,7 @@ def make_observer(init_mode: str = "triad") -> Observer:
     Args:
         init_mode: "triad" (default: the sensor-to-NWU orientation from the first acc and mag samples) or
             "broad" (BROAD's quatFromAccMag start, which reproduces their numbers: 180 deg off for a level
-            sensor facing north, see the module docstring; the default up to jaxatt 0.2.0).
+            sensor facing north, see the module docstring; the default before).
 
     Returns ``Observer(init, step, "mahony")`` with
     ``init(params, first_sample) -> State`` and ``step(params, state, sample, dt) -> (State, Out)``: the step

@@ -279,7 +279,7 @@ def make_observer() -> Observer:
         sig = jnp.sqrt(jnp.maximum(jnp.diagonal(s.p), 0.0))
         return Out(s.t, so3.quat_to_matrix(s.q), s.q, s.b_hat, sig, s.nll)
 
-    return Observer(init=init, step=step, name="mekf", output=output, hold="next")
+    return Observer(init=init, step=step, name="mekf", output=output)  # its step reads "zoh" or "linear" samples
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -326,6 +326,7 @@ ENTRIES = (
         setup=_setup_recorded,
         setup_fields=("r_hat_0", "mag_ref_nav", "acc_ref_nav"),
         frame="ENU",
+        hold="next",  # on recorded data (the filters' convention); the Observer declares none (see the module)
         module="mekf",
         check=check_params,
         field_unit_gains=("r_mag",),
