@@ -848,7 +848,8 @@ def _warn_truth_turns_against_gyro(q_enu, gyr, t, where: str) -> None:
         warnings.warn(
             f"{where}: the ground truth does not turn as the gyro does (median cosine {c:.2f} between their "
             "rotations over short windows, 1 when they agree): does the truth map the world to the sensor (give its "
-            "conjugate), is it scalar-last (jaxatt reads w, x, y, z), or is its body frame not the IMU's?",
+            "conjugate), is it scalar-last (jaxatt reads w, x, y, z), is its body frame not the IMU's, or is it "
+            "offset in time from the IMU?",
             stacklevel=3,
         )
 
