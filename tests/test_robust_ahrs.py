@@ -311,6 +311,26 @@ def test_broad_trial_with_shipped_gains():
     assert res["14_undisturbed_slow_translation_with_breaks_B"] < 1.2, res
 
 
+def test_a_start_in_fast_motion_converges_within_30_s():
+    """BROAD's fast-translation trials started 40 % into their movement (a TRIAD start tilted by the linear
+    acceleration, field references read in that tilted frame): the start-up phase opens the gates while the
+    inclination settles, and 30 s later the error is a few degrees. Without it the magnetic gate stayed shut on the
+    wrong references: 87 and 41 deg after 30 s."""
+    need_data()
+    import jaxatt
+    from jaxatt.data import broad
+
+    for name in ("15_undisturbed_fast_translation_A", "18_undisturbed_fast_translation_with_breaks_B"):
+        tr = broad.load_trial(DATA / f"{name}.hdf5")
+        mv = np.flatnonzero(tr.movement)
+        start = int(mv[0] + 0.4 * (mv[-1] - mv[0]))
+        s = ImuSample(*(np.asarray(a)[start:] for a in tr.samples))
+        est = jaxatt.filter("robust", s._replace(t=s.t - s.t[0]))
+        err = np.degrees(broad.error_angles(est.quat, tr.quat_true[start:])[0])
+        k = int(30 * tr.rate_hz)
+        assert np.nanmean(err[k : k + int(tr.rate_hz)]) < 10.0, (tr.name, np.nanmean(err[k : k + int(tr.rate_hz)]))
+
+
 def test_check_params_names_a_bad_magnetometer_delay():
     import pytest
 
@@ -356,7 +376,8 @@ def test_a_noisy_magnetometer_is_warned_about_and_tau_mag_gate_opens_the_gate():
     """2 uT of magnetometer noise on a 45-uT field (simulated, 100 Hz, no disturbance): with the shipped gains the
     gate takes the noise for a disturbed field and shuts in most samples, and jaxatt.filter says so, naming
     tau_mag_gate; with tau_mag_gate = 0.1 s the gate sees the low-passed norm and dip, stays open, and the error
-    falls to that of a quiet magnetometer's order (measured on 60 s: 2.97 -> 0.23 deg RMS after 20 s)."""
+    falls to that of a quiet magnetometer's order (measured on 40 s: 1.23 -> 0.22 deg RMS after 20 s; 2.97 before
+    the start-up phase, which learns the field references over the first seconds)."""
     import warnings
 
     import jaxatt
@@ -374,13 +395,13 @@ def test_a_noisy_magnetometer_is_warned_about_and_tau_mag_gate_opens_the_gate():
         warnings.simplefilter("always")
         shipped = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01)
     assert any("tau_mag_gate" in str(w.message) for w in caught)
-    assert shipped.outputs["mag_disturbed"].mean() > 0.9
+    assert shipped.outputs["mag_disturbed"][2000:].mean() > 0.75  # after the start-up, which opens the gates
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         low = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01, params={"tau_mag_gate": 0.1})
     assert not any("tau_mag_gate" in str(w.message) for w in caught)
     assert low.outputs["mag_disturbed"].mean() < 0.05
-    assert rms_after_20s(low) < 0.5 < 2.0 < rms_after_20s(shipped), (rms_after_20s(low), rms_after_20s(shipped))
+    assert rms_after_20s(low) < 0.5 < 1.0 < rms_after_20s(shipped), (rms_after_20s(low), rms_after_20s(shipped))
     # missing readings are not rejections: a quiet magnetometer read every 4th sample (NaN rows between), or none,
     # gives no such advice (it said 75 % / 100 % before, pointing at a setting that changes nothing there)
     quiet, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(gyro_bias=(0.0, 0.0, 0.0)), duration=40.0, dt=0.01)
