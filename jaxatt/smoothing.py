@@ -439,10 +439,11 @@ class Passes(NamedTuple):
             :func:`fuse_passes` fuses that recording in inclination only.
         start_age: (B, 2, 2) s, for each pass (forward, backward) and channel (acc: inclination, mag: heading),
             how far in time the reading its start was set from, carried back by the gyro (:func:`_start_from_present`:
-            as good as coasting that long), lies from its first sample (0 when that sample has it), plus
-            :data:`MOVING_START_S` for a pass that starts in motion (:func:`_start_in_motion`), or None.
+            as good as coasting that long), lies from its first sample (0 when that sample has it), or None.
         no_reading_until: (B, 2, 2) s, the same time for observers that are not set up from a carried reading but
             wait for one (VQF's heading): the pass has no weight in that channel before it (:data:`UNINFORMED_S`).
+        start_moving: (B, 2) bool, whether each pass starts in motion (:func:`_start_in_motion`), or None: its
+            uncertainty then has :data:`MOVING_START_S` exp(-t / :data:`SETTLE_S`) more, t the time into the pass.
     """
 
     forward: Any
@@ -455,6 +456,7 @@ class Passes(NamedTuple):
     mag_present: Any = None
     start_age: Any = None
     no_reading_until: Any = None
+    start_moving: Any = None
 
 
 def reversed_params(observer, params):
@@ -544,10 +546,8 @@ def passes_fn(
         mag_present = None if mag is None else jax.vmap(lambda m, n: jnp.any(_present(m, n)))(mag, lengths)
         zero = jnp.zeros_like(age)
         carried, waited = (age, zero) if start_from_present else (zero, age)
-        # a start in motion is as good as this long coasting (in both channels)
         moving = _start_in_motion(given, lengths)
-        carried = carried + jnp.where(moving[:, :, None], MOVING_START_S, 0.0).astype(carried.dtype)
-        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd, mag_present, carried, waited)
+        return Passes(fwd, bwd, dt_f, dt_b, meas, b_fwd, b_bwd, mag_present, carried, waited, moving)
 
     return fn
 
@@ -590,43 +590,45 @@ def _start_age(samples, lengths):
     )
 
 
-#: Uncertainty (s of coasting) added to a pass that starts in motion (:func:`_start_in_motion`): its start comes
-#: from readings tilted by linear accelerations while the observer is still settling (tens of degrees off at the
-#: end of BROAD trials cut mid-movement, against ~1 deg at rest), so the other pass, settled there, has the weight
-#: (the robust AHRS over the last second of the 20 trials cut 60 % into their movement: offline 35.5 deg mean RMSE
-#: without it, 3.4 with 1e3 s, 1.7 with 1e4 s; causal 1.45).
+#: Uncertainty (s of coasting) added at its start to a pass that starts in motion (:func:`_start_in_motion`),
+#: decaying as exp(-t / :data:`SETTLE_S`) into the pass: its start comes from readings tilted by linear
+#: accelerations while the observer is still settling (tens of degrees off at the end of BROAD trials cut
+#: mid-movement, against ~1 deg at rest), so the other pass, settled there, has the weight.
 MOVING_START_S = 1e4
-#: A pass starts in motion when, over its first :data:`START_WINDOW_S` s, its mean |gyr| exceeds
-#: :data:`START_GYR` rad/s (11 deg/s) or its mean | |acc| / median |acc| - 1 | exceeds :data:`START_ACC`. The 20
-#: BROAD trials start and end at rest (mean |gyr| under 0.02 rad/s).
-START_WINDOW_S, START_GYR, START_ACC = 0.5, 0.2, 0.1
+#: Time constant (s) of that extra uncertainty: the robust AHRS started in motion is within a few degrees after
+#: 30 s (research/start_in_motion.py), where exp(-30 / 5) leaves 25 s of coasting.
+SETTLE_S = 5.0
+#: A pass starts "in motion" when, over its first :data:`START_WINDOW_S` s, the mean of | |acc| / median |acc| - 1 |
+#: exceeds :data:`START_ACC` (a linear acceleration, which tilts a start taken from the accelerometer) or that of
+#: | |mag| / median |mag| - 1 | exceeds :data:`START_MAG` (a disturbed field). A rotation alone does not count (an
+#: observer starts well from readings of a turning sensor). On the 20 BROAD trials cut 60 % into their movement the
+#: acc deviation over their last 0.5 s is 0.031-0.94 (0.005-0.008 for the two at rest there), the field's 0.6 on
+#: the attached magnet; 0.004 on a simulated turning IMU without linear acceleration.
+START_WINDOW_S, START_ACC, START_MAG = 0.5, 0.02, 0.1
 
 
 def _start_in_motion(samples, lengths):
     """(B, 2) bool: whether the forward pass (the first :data:`START_WINDOW_S` s of each recording) and the
-    backward pass (its last ones, within its length) start in motion (:data:`START_GYR`, :data:`START_ACC`)."""
+    backward pass (its last ones, within its length) start with a linear acceleration or a disturbed field
+    (:data:`START_ACC`, :data:`START_MAG`)."""
 
-    def one(t, gyr, acc, length):
-        k = jnp.arange(t.shape[0])
-        real = k < length
-        t_end = t[length - 1]
-        windows = (real & (t <= t[0] + START_WINDOW_S), real & (t >= t_end - START_WINDOW_S))
-        g = jnp.linalg.norm(jnp.where(jnp.isfinite(gyr), gyr, jnp.nan), axis=-1)
-        if acc is not None:
-            a = jnp.where(_present(acc, length)[:, None], acc, jnp.nan)
-            an = jnp.linalg.norm(a, axis=-1)
-            dev = jnp.abs(an / jnp.nanmedian(an) - 1.0)
-        moving = []
-        for w in windows:
-            m = jnp.nanmean(jnp.where(w, g, jnp.nan)) > START_GYR
-            if acc is not None:
-                m = m | (jnp.nanmean(jnp.where(w, dev, jnp.nan)) > START_ACC)
-            moving.append(m)
-        return jnp.stack(moving)
+    def deviation(v, length):  # | |v| / median |v| - 1 | per row, NaN where missing
+        n = jnp.linalg.norm(jnp.where(_present(v, length)[:, None], v, jnp.nan), axis=-1)
+        return jnp.abs(n / jnp.nanmedian(n) - 1.0)
 
-    acc = samples.acc
-    return jax.vmap(one, in_axes=(0, 0, None if acc is None else 0, 0))(
-        samples.t, samples.gyr, acc, jnp.asarray(lengths)
+    def one(t, acc, mag, length):
+        real = jnp.arange(t.shape[0]) < length
+        windows = (real & (t <= t[0] + START_WINDOW_S), real & (t >= t[length - 1] - START_WINDOW_S))
+        moving = jnp.zeros(2, bool)
+        for v, most in ((acc, START_ACC), (mag, START_MAG)):
+            if v is not None:
+                dev = deviation(v, length)
+                moving = moving | jnp.stack([jnp.nanmean(jnp.where(w, dev, jnp.nan)) > most for w in windows])
+        return moving
+
+    acc, mag = samples.acc, samples.mag
+    return jax.vmap(one, in_axes=(0, None if acc is None else 0, None if mag is None else 0, 0))(
+        samples.t, acc, mag, jnp.asarray(lengths)
     )
 
 
@@ -639,7 +641,7 @@ def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
     taus = (fusion.tau_inclination, fusion.tau_heading)
     starts = (fusion.start_inclination, fusion.start_heading)
 
-    age, wait = passes.start_age, passes.no_reading_until
+    age, wait, moving = passes.start_age, passes.no_reading_until, passes.start_moving
 
     def variances(trust_, dt, k):
         def start(c):  # a start set from a reading carried by the gyro: as good as coasting that long
@@ -649,10 +651,15 @@ def fuse_passes(passes: Passes, fusion, heading: bool = True) -> Smoothed:
         var = jnp.stack(
             [uncertainty(trust_[..., c], dt, jnp.asarray(taus[c], dtype), start(c)) for c in (0, 1)], axis=-1
         )
+        if wait is None and moving is None:
+            return var
+        t = jnp.cumsum(jnp.broadcast_to(jnp.asarray(dt, dtype), trust_.shape[:-1]).at[:, 0].set(0.0), axis=-1)
+        if moving is not None:  # a start in motion: far less sure while the observer settles
+            settling = MOVING_START_S * jnp.exp(-t / SETTLE_S)
+            var = var + jnp.where(moving[:, k, None], settling, 0.0)[..., None].astype(dtype)
         if wait is None:
             return var
         # an observer that had no reading of a channel yet: no weight in it before its first one
-        t = jnp.cumsum(jnp.broadcast_to(jnp.asarray(dt, dtype), trust_.shape[:-1]).at[:, 0].set(0.0), axis=-1)
         before = t[..., None] < wait[:, None, k, :].astype(dtype)
         return jnp.where(before, jnp.maximum(var, UNINFORMED_S), var)
 
