@@ -1638,9 +1638,8 @@ def test_a_registered_users_observer_is_checked_as_one_passed_directly():
             jaxatt.filter("_narrow", samples.gyr, samples.acc, samples.mag, dt=0.01)
         with pytest.raises(ValueError, match=r"not a unit quaternion .*\(normalise it in step\)"):
             jaxatt.filter("_double", samples.gyr, samples.acc, samples.mag, dt=0.01)
-        trial = broad.Trial(
-            "sim", samples, np.asarray(so3.matrix_to_quat(_short_log()[1].r)), np.ones(len(samples.t), bool), 100.0
-        )
+        truth = np.asarray(so3.matrix_to_quat(_short_log()[1].r))
+        trial = broad.Trial("sim", samples, truth, np.ones(len(samples.t), bool), 100.0, "mine")
         with pytest.raises(ValueError, match="not a unit quaternion .* before the batch run"):
             jaxatt.broad_score("_double", None, [trial])
         with pytest.raises(ValueError, match="not a unit quaternion .* before the batch run"):
