@@ -148,7 +148,7 @@ def test_to_si_keeps_float32_makes_integers_float64_and_leaves_si_alone():
     [
         ("gyr_unit", "rpm", r"gyr_unit must be one of 'rad/s', 'deg/s', 'dps', 'mdps', got 'rpm'"),
         ("acc_unit", None, r"acc_unit must be one of 'm/s\^2', 'm/s2', 'g', 'mg', got None"),
-        ("time_unit", "sec", r"time_unit must be one of 's', 'ms', 'us', 'ns', got 'sec'"),
+        ("time_unit", "minutes", r"time_unit must be one of 's', 'ms', 'us', 'ns', got 'minutes'"),  # 'sec' is read
         ("mag_unit", "uT", r"unit argument must be one of gyr_unit, acc_unit, time_unit, got 'mag_unit'"),
     ],
 )
