@@ -605,6 +605,9 @@ SETTLE_S = 5.0
 #: acc deviation over their last 0.5 s is 0.031-0.94 (0.005-0.008 for the two at rest there), the field's 0.6 on
 #: the attached magnet; 0.004 on a simulated turning IMU without linear acceleration.
 START_WINDOW_S, START_ACC, START_MAG = 0.5, 0.02, 0.1
+#: The norms are averaged over this many seconds before they are compared (white noise of 0.2 m/s^2 read as a
+#: linear acceleration sample by sample).
+NORM_MEAN_S = 0.05
 
 
 def _start_in_motion(samples, lengths):
@@ -612,18 +615,36 @@ def _start_in_motion(samples, lengths):
     backward pass (its last ones, within its length) start with a linear acceleration or a disturbed field
     (:data:`START_ACC`, :data:`START_MAG`)."""
 
-    def deviation(v, length):  # | |v| / median |v| - 1 | per row, NaN where missing
-        n = jnp.linalg.norm(jnp.where(_present(v, length)[:, None], v, jnp.nan), axis=-1)
-        return jnp.abs(n / jnp.nanmedian(n) - 1.0)
+    def deviation(t, v, length):
+        """| |v| / median |v| - 1 | of the norm averaged over :data:`NORM_MEAN_S` (white noise averages out, a
+        linear acceleration of a hand or a vehicle does not), NaN where missing; and the present rows."""
+        ok = _present(v, length)
+        n = jnp.where(ok, jnp.linalg.norm(jnp.where(ok[:, None], v, 0.0), axis=-1), 0.0)
+        d = jnp.diff(t)
+        step = jnp.nanmedian(jnp.where(jnp.arange(d.shape[0]) < length - 1, d, jnp.nan))
+        k = jnp.clip(jnp.round(NORM_MEAN_S / jnp.where(step > 0, step, 1.0)), 1, t.shape[0]).astype(jnp.int32)
+        idx = jnp.arange(t.shape[0])
+        cs = jnp.cumsum(jnp.concatenate([jnp.zeros(1, n.dtype), n]))  # running sums: a centred moving mean
+        cn = jnp.cumsum(jnp.concatenate([jnp.zeros(1, n.dtype), ok.astype(n.dtype)]))
+        lo = jnp.clip(idx - k // 2, 0, t.shape[0])
+        hi = jnp.clip(idx + k - k // 2, 0, t.shape[0])
+        count = cn[hi] - cn[lo]
+        mean = jnp.where(ok & (count > 0), (cs[hi] - cs[lo]) / jnp.maximum(count, 1), jnp.nan)
+        return jnp.abs(mean / jnp.nanmedian(mean) - 1.0), ok
 
     def one(t, acc, mag, length):
         real = jnp.arange(t.shape[0]) < length
-        windows = (real & (t <= t[0] + START_WINDOW_S), real & (t >= t[length - 1] - START_WINDOW_S))
         moving = jnp.zeros(2, bool)
+        if t.shape[0] < 2:  # one sample: nothing to compare
+            return moving
         for v, most in ((acc, START_ACC), (mag, START_MAG)):
-            if v is not None:
-                dev = deviation(v, length)
-                moving = moving | jnp.stack([jnp.nanmean(jnp.where(w, dev, jnp.nan)) > most for w in windows])
+            if v is None:
+                continue
+            dev, ok = deviation(t, v, length)
+            # from the first / to the last present reading: the one a pass's start is set from
+            first, last = jnp.argmax(ok), t.shape[0] - 1 - jnp.argmax(ok[::-1])
+            windows = (real & (t <= t[first] + START_WINDOW_S), real & (t >= t[last] - START_WINDOW_S))
+            moving = moving | jnp.stack([jnp.nanmean(jnp.where(w, dev, jnp.nan)) > most for w in windows])
         return moving
 
     acc, mag = samples.acc, samples.mag

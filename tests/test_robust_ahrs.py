@@ -331,6 +331,26 @@ def test_a_start_in_fast_motion_converges_within_30_s():
         assert np.nanmean(err[k : k + int(tr.rate_hz)]) < 10.0, (tr.name, np.nanmean(err[k : k + int(tr.rate_hz)]))
 
 
+def test_a_field_disturbed_just_after_the_start_is_not_learnt():
+    """The start-up learns the field's dip (read in the still-settling estimate), not its norm: a magnet that
+    arrives 1 s after a clean start and stays 19 s (attached to the sensor, or fixed in the room) is rejected and
+    the clean field taken back. A first version learnt the whole field during the start-up: 29 deg off for good
+    with the magnet attached, 16 deg with it fixed."""
+    import jaxatt
+    from jaxatt import montecarlo
+
+    samples, truth = montecarlo.simulate_log(
+        jaxatt.api.ahrs_scenario(gyro_bias=(0.0, 0.0, 0.0)), duration=60.0, dt=0.01, seed=3
+    )
+    r_true, t, mag = np.asarray(truth.r), np.asarray(samples.t), np.asarray(samples.mag)
+    offset = np.array([0.4, -0.2, 0.1]) * np.linalg.norm(mag, axis=1).mean()
+    on = ((t >= 1.0) & (t < 20.0))[:, None]
+    for dist in (np.broadcast_to(offset, mag.shape), np.einsum("nji,j->ni", r_true, offset)):  # body, world
+        est = jaxatt.filter("robust", samples.gyr, samples.acc, mag + on * dist, dt=0.01)
+        err = np.rad2deg(np.asarray(so3.angle_error(jnp.asarray(r_true), jnp.asarray(est.rotation))))
+        assert err[-1000:].mean() < 1.0, err[-1000:].mean()
+
+
 def test_check_params_names_a_bad_magnetometer_delay():
     import pytest
 
@@ -376,8 +396,7 @@ def test_a_noisy_magnetometer_is_warned_about_and_tau_mag_gate_opens_the_gate():
     """2 uT of magnetometer noise on a 45-uT field (simulated, 100 Hz, no disturbance): with the shipped gains the
     gate takes the noise for a disturbed field and shuts in most samples, and jaxatt.filter says so, naming
     tau_mag_gate; with tau_mag_gate = 0.1 s the gate sees the low-passed norm and dip, stays open, and the error
-    falls to that of a quiet magnetometer's order (measured on 40 s: 1.23 -> 0.22 deg RMS after 20 s; 2.97 before
-    the start-up phase, which learns the field references over the first seconds)."""
+    falls to that of a quiet magnetometer's order (measured on 40 s: 3.03 -> 0.22 deg RMS after 20 s)."""
     import warnings
 
     import jaxatt
@@ -395,13 +414,13 @@ def test_a_noisy_magnetometer_is_warned_about_and_tau_mag_gate_opens_the_gate():
         warnings.simplefilter("always")
         shipped = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01)
     assert any("tau_mag_gate" in str(w.message) for w in caught)
-    assert shipped.outputs["mag_disturbed"][2000:].mean() > 0.75  # after the start-up, which opens the gates
+    assert shipped.outputs["mag_disturbed"].mean() > 0.9
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         low = jaxatt.filter("robust", samples.gyr, samples.acc, samples.mag, dt=0.01, params={"tau_mag_gate": 0.1})
     assert not any("tau_mag_gate" in str(w.message) for w in caught)
     assert low.outputs["mag_disturbed"].mean() < 0.05
-    assert rms_after_20s(low) < 0.5 < 1.0 < rms_after_20s(shipped), (rms_after_20s(low), rms_after_20s(shipped))
+    assert rms_after_20s(low) < 0.5 < 2.0 < rms_after_20s(shipped), (rms_after_20s(low), rms_after_20s(shipped))
     # missing readings are not rejections: a quiet magnetometer read every 4th sample (NaN rows between), or none,
     # gives no such advice (it said 75 % / 100 % before, pointing at a setting that changes nothing there)
     quiet, _ = montecarlo.simulate_log(jaxatt.api.ahrs_scenario(gyro_bias=(0.0, 0.0, 0.0)), duration=40.0, dt=0.01)
