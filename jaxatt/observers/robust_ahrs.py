@@ -266,7 +266,8 @@ class Out(NamedTuple):
         r: (3, 3) sensor-to-ENU rotation matrix (v_ENU = r @ v_sensor).
         bias: (3,) gyro-bias estimate (rad/s, sensor frame).
         mag_disturbed: () bool, magnetometer gated out (weight < 0.5) in this step (or missing).
-        acc_rejected: () bool, accelerometer gated out (weight < 0.5) in this step (or missing).
+        acc_rejected: () bool, accelerometer gated out (weight < 0.5) in this step (or missing); not during
+            the start-up, which opens the acc gate (``State.start``).
         rest: () bool, rest detected (weight > 0.5).
         mag_weight, acc_weight, rest_weight: () the smooth gate values in [0, 1].
         heading_error: () psi, heading of the measured field east of north in the estimated frame (rad), before
