@@ -596,7 +596,8 @@ def _start_age(samples, lengths):
 #: mid-movement, against ~1 deg at rest), so the other pass, settled there, has the weight.
 MOVING_START_S = 1e4
 #: Time constant (s) of that extra uncertainty: the robust AHRS started in motion is within a few degrees after
-#: 30 s (research/start_in_motion.py), where exp(-30 / 5) leaves 25 s of coasting.
+#: 30 s (research/start_in_motion.py), where exp(-30 / 5) leaves 25 s of coasting (a settled pass's heading
+#: uncertainty is ~50 s, its inclination's ~1.5 s: the other pass leads for ~27 s in heading, ~44 s in inclination).
 SETTLE_S = 5.0
 #: A pass starts "in motion" when, over its first :data:`START_WINDOW_S` s, the mean of | |acc| / median |acc| - 1 |
 #: exceeds :data:`START_ACC` (a linear acceleration, which tilts a start taken from the accelerometer) or that of
